@@ -1,0 +1,260 @@
+"""``DrivingEnv``: procedural highway-env scenes driven by a continuous ``[steering, throttle]``.
+
+Reward (baselines and evaluation only) and cost follow the spec (MetaDrive's scheme):
+``reward = (d_t - d_{t-1}) + 0.1 * v_t / v_max``, replaced on the last step by the
+terminal term: +20 at the destination, -5 for a crash or leaving the road.
+``cost = 1`` on a step in collision with a vehicle, an obstacle, or off the road.
+Episodes end on success, crash or out of road (terminated) or at ``horizon`` steps
+(truncated). ``info`` holds, every step: ``cost``, ``success``, ``crash_vehicle``,
+``crash_object``, ``out_of_road``, ``route_completion``, ``travel_distance`` [m, odometer],
+``velocity`` [km/h], ``overtakes`` (vehicles passed, once each), ``scene_seed``.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+
+import gymnasium as gym
+import numpy as np
+from highway_env.envs.common.abstract import AbstractEnv
+from highway_env.envs.common.graphics import EnvViewer
+from highway_env.vehicle.kinematics import Vehicle
+from highway_env.vehicle.objects import Obstacle
+
+from pe_rlhf.envs.action import action_to_controls
+from pe_rlhf.envs.config import DrivingConfig
+from pe_rlhf.envs.fast_road import ActiveRoad
+from pe_rlhf.envs.lidar import EgoLidar
+from pe_rlhf.envs.observation import V_MAX, build_observation, observation_size
+from pe_rlhf.envs.scene import EGO_SPEED, EGO_START, Scene, generate_scene
+from pe_rlhf.envs.splits import scene_seeds
+from pe_rlhf.envs.traffic import release_claims
+
+SUCCESS_REWARD = 20.0
+CRASH_PENALTY = 5.0
+OUT_OF_ROAD_PENALTY = 5.0
+ROAD_EDGE_MARGIN = 1.0  # [m] the ego centre may pass the edge line by this much before it is off road
+SCENE_CACHE = 128
+
+
+class EgoVehicle(Vehicle):
+    """The controlled car: a kinematic bicycle that brakes to a stop and never reverses."""
+
+    LENGTH = 4.5
+    WIDTH = 1.9
+    MAX_SPEED = 30.0
+
+    def set_controls(self, steering_angle: float, acceleration: float) -> None:
+        self.action = {"steering": steering_angle, "acceleration": acceleration}
+
+    def act(self, action=None) -> None:
+        pass  # controls are set once per env step by ``set_controls``
+
+    def step(self, dt: float) -> None:
+        if self.speed <= 0.0 and self.action["acceleration"] < 0.0:
+            self.action["acceleration"] = 0.0
+        super().step(dt)
+        self.speed = float(np.clip(self.speed, 0.0, self.MAX_SPEED))
+
+
+class DrivingEnv(AbstractEnv):
+    """A gymnasium env on highway-env; see the module docstring for reward, cost and info.
+
+    ``reset(options={"scene_seed": k})`` loads scene ``k``; without it a seed is drawn
+    from the configured split (``train``/``test``) with the env's RNG, or any
+    integer when ``split`` is None. Observation layout: :mod:`pe_rlhf.envs.observation`.
+    """
+
+    metadata = {"render_modes": ["human", "rgb_array"], "render_fps": 10}
+
+    def __init__(self, config: DrivingConfig | dict | None = None, render_mode: str | None = None):
+        self.world = config if isinstance(config, DrivingConfig) else DrivingConfig.from_dict(config)
+        self.lidar = EgoLidar(self.world.lidar_beams, self.world.lidar_range)
+        self._scenes: OrderedDict[int, Scene] = OrderedDict()
+        self.last_action = np.zeros(2, dtype=np.float32)
+        super().__init__(
+            {
+                "simulation_frequency": self.world.simulation_frequency,
+                "policy_frequency": self.world.policy_frequency,
+                "screen_width": 800,
+                "screen_height": 450,
+                "scaling": 4.0,
+                "centering_position": [0.35, 0.5],
+            },
+            render_mode,
+        )
+
+    # -- spaces ---------------------------------------------------------------------------
+    def define_spaces(self) -> None:
+        n = observation_size(self.world.lidar_beams)
+        self.observation_space = gym.spaces.Box(-1.0, 1.0, (n,), dtype=np.float32)
+        self.action_space = gym.spaces.Box(-1.0, 1.0, (2,), dtype=np.float32)
+        self.action_type = None
+        self.observation_type = None
+
+    # -- scenes ---------------------------------------------------------------------------
+    def scene(self, seed: int) -> Scene:
+        """The (cached) blueprint of scene ``seed``."""
+        seed = int(seed)
+        if seed not in self._scenes:
+            self._scenes[seed] = generate_scene(seed, self.world)
+            if len(self._scenes) > SCENE_CACHE:
+                self._scenes.popitem(last=False)
+        return self._scenes[seed]
+
+    def _draw_scene_seed(self) -> int:
+        if self.world.split is None:
+            return int(self.np_random.integers(0, 2**31 - 1))
+        seeds = scene_seeds(self.world.split)
+        return int(seeds[self.np_random.integers(0, len(seeds))])
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        gym.Env.reset(self, seed=seed)
+        options = options or {}
+        unknown = set(options) - {"scene_seed"}
+        if unknown:
+            raise ValueError(f"unknown reset option(s) {sorted(unknown)}; allowed: ['scene_seed']")
+        scene_seed = options.get("scene_seed")
+        self.scene_seed = self._draw_scene_seed() if scene_seed is None else int(scene_seed)
+        self.time = self.steps = 0
+        self.done = False
+        self._load(self.scene(self.scene_seed))
+        obs = build_observation(self)
+        info = self._info_dict(cost=0.0)
+        if self.render_mode == "human":
+            self.render()
+        return obs, info
+
+    def _reset(self) -> None:  # AbstractEnv hook; our reset() does the work
+        pass
+
+    def _load(self, scene: Scene) -> None:
+        self.current_scene = scene
+        self.route = scene.route
+        road = ActiveRoad(
+            network=scene.network,
+            np_random=np.random.RandomState(scene.seed % 2**32),
+            record_history=False,
+            neighbour_vehicles_connected_lanes=True,
+            active_radius=self.world.active_radius,
+        )
+        start = (*scene.route.segments[0], self.world.lanes // 2)
+        lane = scene.network.get_lane(start)
+        ego = EgoVehicle(road, lane.position(EGO_START, 0), lane.heading_at(EGO_START), EGO_SPEED)
+        road.vehicles.append(ego)
+        road.focus = ego
+        scene.populate(road)
+        self.road, self.vehicle = road, ego
+        self.route_segment, self.progress = scene.route.project(ego.position, 0)
+        self.travel_distance = 0.0
+        self.last_action = np.zeros(2, dtype=np.float32)
+        self._overtaken: set[int] = set()
+        self._ahead: dict[int, bool] = {}
+        self.crash_vehicle = self.crash_object = self.out_of_road = self.success = False
+
+    # -- dynamics ------------------------------------------------------------------------
+    def step(self, action):
+        if self.road is None or self.vehicle is None:
+            raise RuntimeError("call reset() before step()")
+        steering, accel = action_to_controls(action)
+        self.last_action = np.clip(np.asarray(action, dtype=np.float32).reshape(2), -1, 1)
+        ego = self.vehicle
+        ego.set_controls(steering, accel)
+        frames = self.world.simulation_frequency // self.world.policy_frequency
+        dt = 1.0 / self.world.simulation_frequency
+        for _ in range(frames):
+            self.road.act()
+            self.road.step(dt)
+            self.travel_distance += ego.speed * dt
+            self.steps += 1
+            self._automatic_rendering()
+        self.time += 1.0 / self.world.policy_frequency
+        self._remove_finished_vehicles()
+        previous = self.progress
+        self.route_segment, self.progress = self.route.project(ego.position, self.route_segment)
+        self._update_events()
+        self._update_overtakes()
+        terminated = self.success or self.crash_vehicle or self.crash_object or self.out_of_road
+        truncated = not terminated and self.time * self.world.policy_frequency >= self.world.horizon - 1e-6
+        if self.success:
+            reward = SUCCESS_REWARD
+        elif self.crash_vehicle or self.crash_object:
+            reward = -CRASH_PENALTY
+        elif self.out_of_road:
+            reward = -OUT_OF_ROAD_PENALTY
+        else:
+            reward = (self.progress - previous) + 0.1 * ego.speed / V_MAX
+        cost = float(self.crash_vehicle or self.crash_object or self.out_of_road)
+        obs = build_observation(self)
+        info = self._info_dict(cost)
+        if self.render_mode == "human":
+            self.render()
+        return obs, float(reward), bool(terminated), bool(truncated), info
+
+    def _update_events(self) -> None:
+        ego = self.vehicle
+        if ego.crashed and not (self.crash_vehicle or self.crash_object):
+            if isinstance(self.road.focus_hit, Obstacle):
+                self.crash_object = True
+            else:
+                self.crash_vehicle = True
+        if not self.road.network.is_on_road(ego.position, ROAD_EDGE_MARGIN):
+            self.out_of_road = True
+        on_route = self.route.segment_index(ego.lane_index) is not None
+        if on_route and self.progress >= self.route.length - 5.0 and not self.out_of_road:
+            self.success = not (self.crash_vehicle or self.crash_object)
+
+    def _update_overtakes(self) -> None:
+        """Count vehicles that were ahead of the ego on the route and are now behind it."""
+        ego = self.vehicle
+        for v in self.road.vehicles:
+            if v is ego or np.linalg.norm(v.position - ego.position) > 60.0:
+                continue
+            k = self.route.segment_index(v.lane_index)
+            if k is None:
+                continue
+            _, s = self.route.project(v.position, k)
+            ahead = s > self.progress
+            if self._ahead.get(id(v)) and not ahead:
+                self._overtaken.add(id(v))
+            self._ahead[id(v)] = ahead
+
+    def _remove_finished_vehicles(self) -> None:
+        graph = self.road.network.graph
+        keep = []
+        for v in self.road.vehicles:
+            if v is not self.vehicle and v.lane_index[1] not in graph and v.lane.after_end(v.position):
+                release_claims(v)
+                continue
+            keep.append(v)
+        self.road.vehicles = keep
+
+    def _info_dict(self, cost: float) -> dict:
+        return {
+            "cost": float(cost),
+            "success": bool(self.success),
+            "crash_vehicle": bool(self.crash_vehicle),
+            "crash_object": bool(self.crash_object),
+            "out_of_road": bool(self.out_of_road),
+            "route_completion": float(self.progress / self.route.length),
+            "travel_distance": float(self.travel_distance),
+            "velocity": float(self.vehicle.speed * 3.6),
+            "overtakes": int(len(self._overtaken)),
+            "scene_seed": int(self.scene_seed),
+        }
+
+    # -- rendering -----------------------------------------------------------------------
+    def render(self):
+        if self.render_mode is None:
+            gym.logger.warn("render() needs render_mode='rgb_array' or 'human'")
+            return None
+        if self.viewer is None:
+            self.viewer = EnvViewer(self)
+            self.viewer.enabled = True  # highway-env disables drawing under SDL's dummy driver
+        self.enable_auto_render = self.render_mode == "human"
+        self.viewer.display()
+        if not self.viewer.offscreen:
+            self.viewer.handle_events()
+        if self.render_mode == "rgb_array":
+            return self.viewer.get_image()
+        return None

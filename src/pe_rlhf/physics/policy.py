@@ -1,0 +1,160 @@
+"""The physics policy ``pi_phy``: IDM longitudinal + MOBIL lane changes + lane-keeping steering.
+
+It reads the simulator's state through :mod:`pe_rlhf.physics.perception` and returns
+the normalised ``[steering, throttle]`` action every other policy speaks. As in the
+paper it reasons about **vehicles only** by default: static obstacles are its known
+blind spot (``see_obstacles=True`` lifts it). Three ways to use it:
+
+- ``IDMMobilPolicy(...)(env)`` — a plain function of the simulator state;
+- :class:`PhysicsPolicyModule` — a TorchRL/tensordict module writing ``"action"``;
+- as the physics proposal inside the intervention transforms (later issue).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from highway_env import utils
+
+from pe_rlhf.envs.action import controls_to_action
+from pe_rlhf.envs.geometry import LANE_WIDTH
+from pe_rlhf.physics.idm import IDMParams, idm_acceleration
+from pe_rlhf.physics.mobil import LaneChangeAccelerations, MOBILParams, mobil_choose_lane
+from pe_rlhf.physics.perception import Neighbour, ego_lane_slot, leader_and_follower, neighbours
+
+# Lateral controller gains (highway-env's ControlledVehicle cascade).
+TAU_HEADING = 0.2  # [s]
+TAU_LATERAL = 0.6  # [s]
+TAU_PURSUIT = 0.1  # [s]
+ANTICIPATION_BRAKING = 2.0  # [m/s^2] used to slow down before a slower segment (curve, junction)
+
+
+@dataclass(frozen=True)
+class PhysicsConfig:
+    """IDM/MOBIL parameters (paper defaults) and ablation switches."""
+
+    idm: IDMParams = field(default_factory=IDMParams)
+    mobil: MOBILParams = field(default_factory=MOBILParams)
+    see_obstacles: bool = False
+    use_idm: bool = True  # False: cruise at the desired speed, ignoring leaders ("MOBIL only")
+    use_mobil: bool = True  # False: never change lane ("IDM only")
+
+
+def _gap(ego_s: float, ego_len: float, lead: Neighbour) -> float:
+    return lead.s - ego_s - (lead.length + ego_len) / 2
+
+
+class IDMMobilPolicy:
+    """Callable ``policy(env) -> np.ndarray [steering, throttle]`` on a ``DrivingEnv``."""
+
+    def __init__(self, config: PhysicsConfig | None = None):
+        self.config = config or PhysicsConfig()
+        self.target_lane: int | None = None
+        self._last_decision = -math.inf
+
+    def reset(self) -> None:
+        self.target_lane = None
+        self._last_decision = -math.inf
+
+    def __call__(self, env) -> np.ndarray:
+        env = getattr(env, "unwrapped", env)
+        ego = env.vehicle
+        slot, offset = ego_lane_slot(env)
+        if self.target_lane is None or env.time < self._last_decision:
+            self.target_lane, self._last_decision = slot, -math.inf  # new episode
+        items = neighbours(env, include_obstacles=self.config.see_obstacles)
+        v0 = self.desired_speed(env)
+        if self.config.use_mobil and self.target_lane == slot and abs(offset) < 0.6:
+            if env.time - self._last_decision >= self.config.mobil.lane_change_delay:
+                self._last_decision = env.time
+                self.target_lane = self._mobil(env, items, slot, v0)
+        accel = self._idm(env, items, slot, v0)
+        if self.target_lane != slot:
+            accel = min(accel, self._idm(env, items, self.target_lane, v0))
+        steering = self._steering(env, self.target_lane)
+        return controls_to_action(steering, accel)
+
+    # -- longitudinal ----------------------------------------------------------------
+    def desired_speed(self, env) -> float:
+        """Lane speed limit, lowered ahead of a slower segment so the car arrives at its limit."""
+        route, k = env.route, env.route_segment
+        lane = route.reference_lane(route.segments[k])
+        v0 = float(lane.speed_limit)
+        to_end = route.segment_start(route.segments[k]) + lane.length - env.progress
+        for j in range(k + 1, min(k + 4, len(route.segments))):
+            nxt = route.reference_lane(route.segments[j])
+            v0 = min(v0, math.sqrt(nxt.speed_limit**2 + 2 * ANTICIPATION_BRAKING * max(to_end, 0.0)))
+            to_end += nxt.length
+        return max(v0, 1.0)
+
+    def _idm(self, env, items, lane: int, v0: float) -> float:
+        ego = env.vehicle
+        if not self.config.use_idm:
+            return idm_acceleration(ego.speed, v0, params=self.config.idm)
+        lead, _ = leader_and_follower(items, lane, env.progress, env.route.lanes)
+        if lead is None:
+            return idm_acceleration(ego.speed, v0, params=self.config.idm)
+        return idm_acceleration(ego.speed, v0, _gap(env.progress, ego.LENGTH, lead), max(lead.speed, 0.0),
+                                params=self.config.idm)
+
+    # -- lateral -----------------------------------------------------------------------
+    def _mobil(self, env, items, slot: int, v0: float) -> int:
+        ego, p = env.vehicle, self.config.idm
+        s, lanes = env.progress, env.route.lanes
+        old_lead, old_follow = leader_and_follower(items, slot, s, lanes)
+
+        def follower_acc(f: Neighbour | None, lead_s: float | None, lead_len: float, lead_v: float):
+            if f is None or f.is_obstacle:
+                return None
+            target = float(getattr(f.obj, "target_speed", v0)) or v0
+            if lead_s is None:
+                return idm_acceleration(max(f.speed, 0.0), target, params=p)
+            gap = lead_s - f.s - (lead_len + f.length) / 2
+            return idm_acceleration(max(f.speed, 0.0), target, gap, lead_v, params=p)
+
+        def ego_acc(lead: Neighbour | None) -> float:
+            if lead is None:
+                return idm_acceleration(ego.speed, v0, params=p)
+            return idm_acceleration(ego.speed, v0, _gap(s, ego.LENGTH, lead), max(lead.speed, 0.0), params=p)
+
+        candidates = {}
+        for lane in (slot - 1, slot + 1):
+            if not 0 <= lane < lanes:
+                continue
+            new_lead, new_follow = leader_and_follower(items, lane, s, lanes)
+            lead_args = (new_lead.s, new_lead.length, new_lead.speed) if new_lead else (None, 0.0, 0.0)
+            old_lead_args = (old_lead.s, old_lead.length, old_lead.speed) if old_lead else (None, 0.0, 0.0)
+            nf_before = follower_acc(new_follow, *lead_args)
+            of_before = follower_acc(old_follow, s, ego.LENGTH, ego.speed)
+            candidates[lane] = LaneChangeAccelerations(
+                ego_current=ego_acc(old_lead),
+                ego_target=ego_acc(new_lead),
+                new_follower_before=nf_before,
+                new_follower_after=None if nf_before is None else follower_acc(new_follow, s, ego.LENGTH, ego.speed),
+                old_follower_before=of_before,
+                old_follower_after=None if of_before is None else follower_acc(old_follow, *old_lead_args),
+            )
+        return mobil_choose_lane(slot, candidates, self.config.mobil)
+
+    def _steering(self, env, slot: int) -> float:
+        """Front-wheel angle [rad] to track lane slot ``slot`` along the route (pursuit + heading loop)."""
+        ego, route, k = env.vehicle, env.route, env.route_segment
+        lane = env.road.network.get_lane((*route.segments[k], slot))
+        s, lat = lane.local_coordinates(ego.position)
+        ahead = s + ego.speed * TAU_PURSUIT
+        if ahead > lane.length and k + 1 < len(route.segments):
+            nxt = env.road.network.get_lane((*route.segments[k + 1], slot))
+            future_heading = nxt.heading_at(ahead - lane.length)
+        else:
+            future_heading = lane.heading_at(min(ahead, lane.length))
+        speed = utils.not_zero(ego.speed)
+        heading_cmd = math.asin(float(np.clip(-lat / TAU_LATERAL / speed, -1, 1)))
+        heading_ref = future_heading + float(np.clip(heading_cmd, -math.pi / 4, math.pi / 4))
+        rate = utils.wrap_to_pi(heading_ref - ego.heading) / TAU_HEADING
+        slip = math.asin(float(np.clip(ego.LENGTH / 2 / speed * rate, -1, 1)))
+        return math.atan(2 * math.tan(slip))
+
+
+__all__ = ["IDMMobilPolicy", "PhysicsConfig", "LANE_WIDTH"]
