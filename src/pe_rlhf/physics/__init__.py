@@ -27,3 +27,7 @@ __all__ = [
     "mobil_safe",
     "mobil_should_change",
 ]
+
+from pe_rlhf.physics.policy import IDMMobilPolicy, PhysicsConfig  # noqa: E402
+
+__all__ += ["IDMMobilPolicy", "PhysicsConfig"]
