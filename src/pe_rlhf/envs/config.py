@@ -19,7 +19,7 @@ class DrivingConfig:
     """
 
     traffic_density: float = 0.5
-    obstacle_density: float = 0.45
+    obstacle_density: float = 1.0
     truck_fraction: float = 0.2
     side_traffic_probability: float = 0.6
     lanes: int = 3

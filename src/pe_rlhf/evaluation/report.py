@@ -23,9 +23,9 @@ STAGE_COLUMNS = (
     ("Stage III", "overtakes", "overtake_count", ".2f"),
 )
 FAILURE_COLUMNS = (
-    ("crash vehicle", "crash_vehicle_rate"),
-    ("crash object", "crash_object_rate"),
-    ("out of road", "out_of_road_rate"),
+    ("crash\nvehicle", "crash_vehicle_rate"),
+    ("crash\nobject", "crash_object_rate"),
+    ("out of\nroad", "out_of_road_rate"),
     ("timeout", "timeout_rate"),
 )
 
@@ -51,18 +51,17 @@ def summary_tables(summaries: Union[Summary, Sequence[tuple[str, Summary]]],
     """
     rows = _rows(summaries)
     episodes = sorted({int(s.get("episodes", 0)) for _, s in rows})
-    caption = (f"{'/'.join(map(str, episodes))} episodes; mean ± std; "
-               "failed v/o/r/t = crash vehicle / crash object / out of road / timeout")
+    caption = (f"{'/'.join(map(str, episodes))} episodes, mean ± std; failed v/o/r/t: "
+               "crash vehicle/object, out of road, timeout")
     stages = Table(title="Evaluation", show_edge=False)
-    name_width = max(len("policy"), *(len(name) for name, _ in rows))
-    stages.add_column("policy", style="bold", min_width=name_width)
+    stages.add_column("policy", style="bold", overflow="fold")
     for stage, header, _, _ in STAGE_COLUMNS:
         stages.add_column(f"{stage}\n{header}", justify="right")
     failures = Table(title="Failure modes (rates)", caption=caption, show_edge=False)
-    failures.add_column("policy", style="bold", min_width=name_width)
+    failures.add_column("policy", style="bold", overflow="fold")
     for header, _ in FAILURE_COLUMNS:
         failures.add_column(header, justify="right")
-    failures.add_column("failed v/o/r/t", justify="right")
+    failures.add_column("failed\nv/o/r/t", justify="right")
     for name, s in rows:
         stages.add_row(name, *(_cell(s.get(key), fmt, sep) for _, _, key, fmt in STAGE_COLUMNS))
         fb = s.get("failure_breakdown", {})
