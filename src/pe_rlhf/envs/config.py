@@ -38,6 +38,11 @@ class DrivingConfig:
         def bad(name: str, allowed: str) -> None:
             raise ValueError(f"DrivingConfig.{name}={getattr(self, name)!r} is invalid: {allowed}")
 
+        for name in ("lanes", "min_blocks", "max_blocks", "horizon", "simulation_frequency",
+                     "policy_frequency", "lidar_beams"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or isinstance(value, bool):
+                bad(name, "must be an integer")
         for name in ("traffic_density", "obstacle_density"):
             if not 0 <= getattr(self, name) <= 5:
                 bad(name, "must be in [0, 5]")
@@ -54,7 +59,8 @@ class DrivingConfig:
             bad("block_types", f"unknown {unknown}; allowed: {list(BLOCK_TYPES)}")
         if self.horizon < 1:
             bad("horizon", "must be >= 1")
-        if self.policy_frequency < 1 or self.simulation_frequency % self.policy_frequency:
+        if self.policy_frequency < 1 or self.simulation_frequency < 1 \
+                or self.simulation_frequency % self.policy_frequency:
             bad("simulation_frequency", "must be a positive multiple of policy_frequency "
                 "(highway-env runs int(sim // policy) substeps per action)")
         if self.lidar_beams < 1 or self.lidar_range <= 0:

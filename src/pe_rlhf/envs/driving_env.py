@@ -12,6 +12,7 @@ Episodes end on success, crash or out of road (terminated) or at ``horizon`` ste
 
 from __future__ import annotations
 
+import logging
 from collections import OrderedDict
 
 import gymnasium as gym
@@ -29,6 +30,9 @@ from pe_rlhf.envs.observation import V_MAX, build_observation, observation_size
 from pe_rlhf.envs.scene import EGO_SPEED, EGO_START, Scene, generate_scene
 from pe_rlhf.envs.splits import scene_seeds
 from pe_rlhf.envs.traffic import release_claims
+
+# Overlapping lanes (ring entries, ramps) make highway-env warn about routes every substep.
+logging.getLogger("highway_env.road.road").setLevel(logging.ERROR)
 
 SUCCESS_REWARD = 20.0
 CRASH_PENALTY = 5.0

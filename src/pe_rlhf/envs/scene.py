@@ -70,39 +70,46 @@ class Scene:
             road.vehicles.append(v)
 
 
-def _sample_points(network: FastRoadNetwork, nodes: set[str]) -> np.ndarray:
+def _block_points(network: FastRoadNetwork, nodes: set[str]) -> np.ndarray:
+    """Centre-line samples every 4 m of the lanes ending at ``nodes`` (the lanes a block added)."""
     pts = []
     for _from, to_dict in network.graph.items():
         for _to, lanes in to_dict.items():
-            if _from in nodes or _to in nodes:
+            if _to in nodes:
                 for lane in lanes:
                     for s in np.arange(0, lane.length, 4.0):
                         pts.append(lane.position(s, 0))
     return np.array(pts).reshape(-1, 2)
 
 
+def _nodes(network: FastRoadNetwork) -> set[str]:
+    return {n for f, t in network.graph.items() for n in [f, *t]}
+
+
 def _build_route(rng: np.random.Generator, config: DrivingConfig) -> tuple[RouteBuilder, list[str]]:
-    """Chain random blocks; reject a layout whose blocks overlap (retry with the same rng)."""
+    """Chain random blocks; reject a layout whose blocks overlap (retry with the same rng).
+
+    A block may touch the block before it; it must keep ``MIN_CLEARANCE`` plus a lane
+    width from every older block (its own lanes and side roads included).
+    """
     for _ in range(50):
         b = RouteBuilder(lanes=config.lanes)
         b.straight(40.0, tag="s", obstacles_ok=False)
         names = list(rng.choice(config.block_types, size=int(rng.integers(config.min_blocks, config.max_blocks + 1))))
-        block_nodes: list[set[str]] = [set(b.network.graph)]
+        blocks: list[set[str]] = [_nodes(b.network)]
         ok = True
         for name in names:
-            before = {n for f, t in b.network.graph.items() for n in [f, *t]}
+            before = _nodes(b.network)
             BLOCK_BUILDERS[name](b, rng)
-            after = {n for f, t in b.network.graph.items() for n in [f, *t]}
-            new = (after - before) | {b.segments[-1][0]}
-            pts = _sample_points(b.network, new - before)
-            older = set().union(*block_nodes[:-1]) if len(block_nodes) > 1 else set()
-            old_pts = _sample_points(b.network, older - set().union(block_nodes[-1], new)) if older else np.zeros((0, 2))
+            created = _nodes(b.network) - before
+            pts = _block_points(b.network, created)
+            old_pts = _block_points(b.network, set().union(*blocks[:-1])) if len(blocks) > 1 else np.zeros((0, 2))
             if len(old_pts) and len(pts):
                 d = np.linalg.norm(pts[:, None, :] - old_pts[None, :, :], axis=2)
                 if d.min() < MIN_CLEARANCE + 4.0:
                     ok = False
                     break
-            block_nodes.append(new - before)
+            blocks.append(created)
             if abs(math.degrees(b.pose.heading)) > 120:
                 ok = False
                 break
@@ -140,24 +147,26 @@ def _place_obstacles(b: RouteBuilder, route: Route, rng: np.random.Generator, co
             events.append(("broken_down", lane_id, s_route))
         else:
             side = rng.choice([-1.0, 1.0])
-            for i in range(4):
-                specs.append(ObstacleSpec(TrafficCone, lane_index, s_lane + 2.5 * i, side * (1.5 - i * 1.0)))
+            for i in range(4):  # a taper across the lane, kept 1 m inside its edges
+                specs.append(ObstacleSpec(TrafficCone, lane_index, s_lane + 2.5 * i, side * (0.9 - i * 0.6)))
             events.append(("cones", lane_id, s_route))
     return specs, events
 
 
 def _place_traffic(b: RouteBuilder, route: Route, events, rng: np.random.Generator, config: DrivingConfig):
     specs: list[VehicleSpec] = []
-    occupied: dict[tuple, list[float]] = {}
+    # Occupied positions per lane slot in route metres (so spacing holds across segment
+    # boundaries), or per side lane in lane metres.
+    occupied: dict[object, list[float]] = {}
 
-    def free(lane_index, s, gap=14.0) -> bool:
-        return all(abs(s - o) > gap for o in occupied.get(lane_index, []))
+    def free(key, s, gap=14.0) -> bool:
+        return all(abs(s - o) > gap for o in occupied.get(key, []))
 
-    def add(lane_index, s, dest, speed_limit):
+    def add(key, lane_index, s_key, s, dest, speed_limit):
         kind = TrafficTruck if rng.random() < config.truck_fraction else TrafficCar
         target = float(rng.uniform(0.7, 1.0) * speed_limit)
         specs.append(VehicleSpec(kind, lane_index, s, float(rng.uniform(0.7, 0.95)) * target, target, dest))
-        occupied.setdefault(lane_index, []).append(s)
+        occupied.setdefault(key, []).append(s_key)
 
     for seg in route.segments:
         ref = route.reference_lane(seg)
@@ -167,20 +176,23 @@ def _place_traffic(b: RouteBuilder, route: Route, events, rng: np.random.Generat
             for _ in range(rng.poisson(config.traffic_density * lane.length / 100.0)):
                 s = float(rng.uniform(0, lane.length))
                 s_route = route.segment_start(seg) + s * ref.length / lane.length
-                if s_route < EGO_START + 25.0 or not free(lane_index, s):
+                if s_route < EGO_START + 25.0 or not free(lane_id, s_route):
                     continue
-                if any(e_lane == lane_id and -10.0 < e_s - s_route < 35.0 for _, e_lane, e_s in events):
-                    continue  # keep clear of obstacles (and the queue they cause)
+                # Keep clear of obstacle events: a triangle 15 m before a car, or 7.5 m of cones
+                # after the event point, plus the queue they cause before them.
+                if any(e_lane == lane_id and -15.0 < e_s - s_route < 50.0 for _, e_lane, e_s in events):
+                    continue
                 dest = route.final_node
                 if b.exits and rng.random() < 0.25:
                     exit_node = str(rng.choice(b.exits))
                     if b.network.shortest_path(seg[1], exit_node):
                         dest = exit_node  # leaves the route at a ramp or junction arm downstream
-                add(lane_index, s, dest, min(ROAD_SPEED, lane.speed_limit))
+                add(lane_id, lane_index, s_route, s, dest, min(ROAD_SPEED, lane.speed_limit))
     for spawn in b.side_spawns:
         if rng.random() < config.side_traffic_probability and free(spawn.lane_index, spawn.longitudinal):
             dest = route.final_node if spawn.destination == "@route_end" else spawn.destination
-            add(spawn.lane_index, spawn.longitudinal, dest, b.network.get_lane(spawn.lane_index).speed_limit)
+            add(spawn.lane_index, spawn.lane_index, spawn.longitudinal, spawn.longitudinal, dest,
+                b.network.get_lane(spawn.lane_index).speed_limit)
     return specs
 
 

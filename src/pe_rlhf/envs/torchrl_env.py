@@ -42,9 +42,10 @@ class DrivingTorchEnv(EnvBase):
     """``DrivingEnv`` as a TorchRL ``EnvBase``, written lean (no ``GymWrapper`` plumbing).
 
     The simulator step costs ~1-2 ms; a generic wrapper adds ~0.4 ms, so this class
-    builds the output TensorDict directly. ``reset`` accepts an optional ``scene_seed``
-    entry (int64 ``(1,)``) in the input TensorDict to load a given scene; otherwise a
-    scene of the configured split is drawn with the env's RNG (``set_seed``).
+    builds the output TensorDict directly. ``env.reset(scene_seed=k)`` (also through a
+    ``TransformedEnv``) or a ``scene_seed`` entry in the reset TensorDict of the base env
+    loads scene ``k``; otherwise a scene of the configured split is drawn with the env's
+    RNG (``set_seed``).
     ``driving_env`` is the underlying gymnasium env (privileged simulator access).
     """
 
@@ -76,10 +77,11 @@ class DrivingTorchEnv(EnvBase):
             out[k] = torch.tensor([info[k]], dtype=torch.int64)
         return out
 
-    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
-        options = None
-        if tensordict is not None and "scene_seed" in tensordict.keys():
-            options = {"scene_seed": int(tensordict.get("scene_seed").reshape(-1)[0])}
+    def _reset(self, tensordict: TensorDictBase | None = None, scene_seed: int | None = None,
+               **kwargs) -> TensorDictBase:
+        if scene_seed is None and tensordict is not None and "scene_seed" in tensordict.keys():
+            scene_seed = int(tensordict.get("scene_seed").reshape(-1)[0])
+        options = None if scene_seed is None else {"scene_seed": int(scene_seed)}
         obs, info = self.driving_env.reset(options=options)
         out = self._output(obs, info)
         out["done"] = out["terminated"] = out["truncated"] = torch.zeros(1, dtype=torch.bool)
@@ -111,6 +113,24 @@ def make_base_env(config: DrivingConfig | dict | None = None, render_mode: str |
     return DrivingTorchEnv(config, render_mode)
 
 
+class DrivingTransformedEnv(TransformedEnv):
+    """``TransformedEnv`` that forwards a ``scene_seed`` entry of the reset TensorDict.
+
+    (TorchRL's ``TransformedEnv._reset`` keeps only reset and state keys of its input,
+    which would drop the requested scene; ``ParallelEnv`` resets go through this path.)
+    """
+
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs):
+        if tensordict is None or "scene_seed" not in tensordict.keys():
+            return super()._reset(tensordict, **kwargs)
+        td = self.transform._reset_env_preprocess(
+            tensordict.select(*self.reset_keys, "scene_seed", strict=False)
+        )
+        out = self.base_env._reset(td, **kwargs)
+        self.base_env._complete_done(self.base_env.full_done_spec, out)
+        return self.transform._reset(td, out)
+
+
 def make_env(
     config: DrivingConfig | dict | None = None, render_mode: str | None = None, episode_stats: bool = False
 ) -> TransformedEnv:
@@ -120,7 +140,7 @@ def make_env(
     (``episode_reward``); off by default because each costs ~5% of a step here.
     """
     transforms = [StepCounter(), RewardSum(in_keys=["reward"], out_keys=["episode_reward"])] if episode_stats else []
-    return TransformedEnv(make_base_env(config, render_mode), Compose(*transforms))
+    return DrivingTransformedEnv(make_base_env(config, render_mode), Compose(*transforms))
 
 
 def unwrap(env) -> Any:
@@ -131,4 +151,4 @@ def unwrap(env) -> Any:
     return getattr(base, "driving_env", base)
 
 
-__all__ = ["DrivingTorchEnv", "make_base_env", "make_env", "unwrap"]
+__all__ = ["DrivingTorchEnv", "DrivingTransformedEnv", "make_base_env", "make_env", "unwrap"]

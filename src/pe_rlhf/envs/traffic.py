@@ -15,6 +15,8 @@ import numpy as np
 from highway_env.vehicle.behavior import IDMVehicle
 from highway_env.vehicle.objects import Obstacle
 
+OBSTACLE_LOOKAHEAD = 60.0  # [m] traffic plans around obstacles this far ahead in its lane
+STALL_ABORT = 3.0  # [s] a lane change stalled at a standstill this long is given up
 GIVE_WAY_DISTANCE = 20.0  # [m] from the stop line at which side traffic checks the junction
 ARRIVAL_HORIZON = 5.0  # [s] a vehicle arriving within this time blocks the junction
 CLEAR_MARGIN = 8.0  # [m] around the junction radius that must be free
@@ -36,6 +38,7 @@ class TrafficCar(IDMVehicle):
         # them, and they with obstacles): a pile-up of rule-based cars would block the
         # route for reasons no driver could fix.
         self.check_collisions = False
+        self._stopped_for = 0.0
 
     def act(self, action=None):
         super().act(action)
@@ -59,6 +62,50 @@ class TrafficCar(IDMVehicle):
         super().step(dt)
         if self.speed < 0.0:  # IDM braking may overshoot zero; real cars stop, they do not reverse
             self.speed = 0.0
+        self._stopped_for = self._stopped_for + dt if self.speed < 0.5 else 0.0
+
+    def change_lane_policy(self) -> None:
+        """MOBIL, plus: leave a lane blocked by an obstacle ahead, and give up stalled changes.
+
+        highway-env's MOBIL alone deadlocks behind obstacles: a car queued behind cones
+        keeps a lane change pending into a lane that is stopped too, forever.
+        """
+        if self.lane_index != self.target_lane_index:
+            if self._stopped_for > STALL_ABORT:
+                self.target_lane_index = self.lane_index
+            return super().change_lane_policy()
+        if self._obstacle_ahead(self.lane_index):
+            for lane_index in self.road.network.side_lanes(self.lane_index):
+                lane = self.road.network.get_lane(lane_index)
+                if lane.is_reachable_from(self.position) and not self._obstacle_ahead(lane_index) \
+                        and self._gap_ok(lane_index):
+                    self.target_lane_index = lane_index
+                    return
+            return  # wait for a gap
+        super().change_lane_policy()
+
+    def _obstacle_ahead(self, lane_index) -> bool:
+        lane = self.road.network.get_lane(lane_index)
+        s_self = lane.local_coordinates(self.position)[0]
+        for o in self.road.objects:
+            if np.abs(o.position - self.position).max() > OBSTACLE_LOOKAHEAD + 5:
+                continue
+            s, lat = lane.local_coordinates(o.position)
+            if 0 < s - s_self < OBSTACLE_LOOKAHEAD and abs(lat) < lane.width_at(s) / 2 + o.WIDTH / 2 - 0.3:
+                return True
+        return False
+
+    def _gap_ok(self, lane_index) -> bool:
+        """Room in ``lane_index`` beside us and acceptable braking for its follower."""
+        front, rear = self.road.neighbour_vehicles(self, lane_index)
+        if front is not None and self.lane_distance_to(front) < (self.LENGTH + front.LENGTH) / 2 + 2.0:
+            return False
+        if rear is not None:
+            if rear.lane_distance_to(self) < (self.LENGTH + rear.LENGTH) / 2 + 2.0:
+                return False
+            if self.acceleration(ego_vehicle=rear, front_vehicle=self) < -2 * self.LANE_CHANGE_MAX_BRAKING_IMPOSED:
+                return False
+        return True
 
     def _stop_acceleration(self, gap: float) -> float:
         """IDM deceleration towards a standing obstacle ``gap`` metres ahead."""

@@ -32,6 +32,7 @@ class Neighbour:
     length: float
     width: float
     is_obstacle: bool
+    half_lateral: float  # [m] half of its extent across the route (an angled car is wider)
 
 
 def ego_lane_slot(env) -> tuple[int, float]:
@@ -59,15 +60,16 @@ def neighbours(env, include_obstacles: bool = True, radius: float = LOOK_AHEAD) 
             continue  # on a side road or arm, not on the route's lanes
         slot = int(np.round(lat / LANE_WIDTH + route.lanes // 2))
         heading_diff = utils.wrap_to_pi(obj.heading - route.heading_at(obj.position, j))
+        half_lateral = 0.5 * (obj.LENGTH * abs(np.sin(heading_diff)) + obj.WIDTH * abs(np.cos(heading_diff)))
         out.append(Neighbour(obj, s, slot, lat, float(obj.speed * np.cos(heading_diff)),
-                             float(obj.LENGTH), float(obj.WIDTH), isinstance(obj, Obstacle)))
+                             float(obj.LENGTH), float(obj.WIDTH), isinstance(obj, Obstacle), float(half_lateral)))
     return out
 
 
 def occupies(n: Neighbour, lane: int, lanes: int) -> bool:
     """Whether ``n``'s body overlaps lane slot ``lane`` (a car straddling two lanes blocks both)."""
     centre = (lane - lanes // 2) * LANE_WIDTH
-    return abs(n.lateral - centre) < LANE_WIDTH / 2 + n.width / 2 - 0.3
+    return abs(n.lateral - centre) < LANE_WIDTH / 2 + n.half_lateral - 0.3
 
 
 def leader_and_follower(

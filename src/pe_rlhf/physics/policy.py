@@ -28,6 +28,7 @@ from pe_rlhf.physics.perception import Neighbour, ego_lane_slot, leader_and_foll
 TAU_HEADING = 0.2  # [s]
 TAU_LATERAL = 0.6  # [s]
 TAU_PURSUIT = 0.1  # [s]
+MIN_CONTROL_SPEED = 2.0  # [m/s] floor on the speed used by the steering controller
 ANTICIPATION_BRAKING = 2.0  # [m/s^2] used to slow down before a slower segment (curve, junction)
 
 
@@ -53,19 +54,22 @@ class IDMMobilPolicy:
         self.config = config or PhysicsConfig()
         self.target_lane: int | None = None
         self._last_decision = -math.inf
+        self._road = None
 
     def reset(self) -> None:
         self.target_lane = None
         self._last_decision = -math.inf
+        self._road = None
 
     def __call__(self, env) -> np.ndarray:
         env = getattr(env, "unwrapped", env)
-        ego = env.vehicle
         slot, offset = ego_lane_slot(env)
-        if self.target_lane is None or env.time < self._last_decision:
-            self.target_lane, self._last_decision = slot, -math.inf  # new episode
+        if env.road is not self._road:  # every env.reset builds a new road: a new episode
+            self._road, self.target_lane, self._last_decision = env.road, slot, -math.inf
         items = neighbours(env, include_obstacles=self.config.see_obstacles)
         v0 = self.desired_speed(env)
+        if abs(self.target_lane - slot) > 1 or (self.target_lane != slot and not self._target_safe(env, items)):
+            self.target_lane = slot  # moved by someone else, or the gap closed: re-plan from here
         if self.config.use_mobil and self.target_lane == slot and abs(offset) < 0.6:
             if env.time - self._last_decision >= self.config.mobil.lane_change_delay:
                 self._last_decision = env.time
@@ -98,6 +102,19 @@ class IDMMobilPolicy:
             return idm_acceleration(ego.speed, v0, params=self.config.idm)
         return idm_acceleration(ego.speed, v0, _gap(env.progress, ego.LENGTH, lead), max(lead.speed, 0.0),
                                 params=self.config.idm)
+
+    def _target_safe(self, env, items) -> bool:
+        """MOBIL's safety criterion, re-checked every step while a lane change is under way."""
+        ego, s = env.vehicle, env.progress
+        lead, follow = leader_and_follower(items, self.target_lane, s, env.route.lanes)
+        if lead is not None and _gap(s, ego.LENGTH, lead) < 0.0:
+            return False
+        if follow is None or follow.is_obstacle:
+            return True
+        gap = s - follow.s - (follow.length + ego.LENGTH) / 2
+        target = float(getattr(follow.obj, "target_speed", 0.0)) or self.desired_speed(env)
+        a = idm_acceleration(max(follow.speed, 0.0), target, gap, ego.speed, params=self.config.idm)
+        return a >= -self.config.mobil.max_safe_braking
 
     # -- lateral -----------------------------------------------------------------------
     def _mobil(self, env, items, slot: int, v0: float) -> int:
@@ -149,7 +166,7 @@ class IDMMobilPolicy:
             future_heading = nxt.heading_at(ahead - lane.length)
         else:
             future_heading = lane.heading_at(min(ahead, lane.length))
-        speed = utils.not_zero(ego.speed)
+        speed = max(ego.speed, MIN_CONTROL_SPEED)  # 1/speed gains would saturate at a standstill
         heading_cmd = math.asin(float(np.clip(-lat / TAU_LATERAL / speed, -1, 1)))
         heading_ref = future_heading + float(np.clip(heading_cmd, -math.pi / 4, math.pi / 4))
         rate = utils.wrap_to_pi(heading_ref - ego.heading) / TAU_HEADING
