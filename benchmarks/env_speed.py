@@ -69,6 +69,29 @@ def time_torchrl(actions: dict[int, np.ndarray]) -> tuple[int, float]:
     return steps, elapsed
 
 
+def time_stock_highway(vehicles: int, steps: int = 600) -> float:
+    """Steps/s of stock highway-v0 with a 240-beam lidar, 20 Hz sim / 10 Hz policy, random actions."""
+    import gymnasium as gym
+    import highway_env  # noqa: F401
+
+    env = gym.make("highway-v0", config={
+        "observation": {"type": "LidarObservation", "cells": 240, "maximum_range": 50},
+        "action": {"type": "ContinuousAction"}, "simulation_frequency": 20, "policy_frequency": 10,
+        "vehicles_count": vehicles, "duration": 10_000,
+    })
+    env.reset(seed=0)
+    rng, done, n, elapsed = np.random.default_rng(0), False, 0, 0.0
+    while n < steps:
+        if done:
+            env.reset()
+        a = rng.uniform(-0.3, 0.3, 2).astype(np.float32)
+        t = time.perf_counter()
+        _, _, term, trunc, _ = env.step(a)
+        elapsed += time.perf_counter() - t
+        done, n = term or trunc, n + 1
+    return n / elapsed
+
+
 def driving_obs(driving) -> np.ndarray:
     from pe_rlhf.envs.observation import build_observation
 
@@ -80,6 +103,8 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=10)
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--json", default=None)
+    parser.add_argument("--stock-vehicles", type=int, nargs="*", default=[10, 20],
+                        help="also time stock highway-v0 with these vehicle counts (for scale)")
     args = parser.parse_args()
     torch.set_num_threads(1)
     seeds = scene_seeds("test")[: args.episodes]
@@ -91,6 +116,7 @@ def main() -> None:
         n, t = time_torchrl(actions)
         trl.append(n / t)
     raw_sps, trl_sps = float(np.median(raw)), float(np.median(trl))
+    stock = {str(v): time_stock_highway(v) for v in args.stock_vehicles}
     result = {
         "episodes": len(seeds),
         "steps_per_round": int(sum(len(a) for a in actions.values())),
@@ -99,6 +125,7 @@ def main() -> None:
         "torchrl_over_raw": trl_sps / raw_sps,
         "wrapper_overhead": raw_sps / trl_sps - 1.0,
         "rounds": args.rounds,
+        "stock_highway_v0_steps_per_s_by_vehicles": stock,
         "seeds": list(seeds),
     }
     print(json.dumps(result, indent=2))
