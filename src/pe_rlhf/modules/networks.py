@@ -1,0 +1,41 @@
+"""Actor and critic networks for the driving task (TorchRL modules with documented keys)."""
+
+from __future__ import annotations
+
+import torch
+from tensordict.nn import NormalParamExtractor, TensorDictModule
+from torch import nn
+from torchrl.data import Bounded
+from torchrl.modules import MLP, ProbabilisticActor, TanhNormal
+
+
+class QValueNet(nn.Module):
+    """``Q(s, a)``: an MLP on ``cat(observation, action)`` returning ``(..., 1)``."""
+
+    def __init__(self, obs_dim: int, action_dim: int = 2, hidden: tuple[int, ...] = (256, 256)):
+        super().__init__()
+        self.mlp = MLP(in_features=obs_dim + action_dim, out_features=1, num_cells=list(hidden),
+                       activation_class=nn.ReLU)
+
+    def forward(self, observation: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        return self.mlp(torch.cat([observation, action], -1))
+
+
+def make_qvalue(obs_dim: int, action_dim: int = 2, hidden: tuple[int, ...] = (256, 256)) -> TensorDictModule:
+    """Critic module: reads ``observation`` ``(..., obs_dim)`` and ``action`` ``(..., A)``,
+    writes ``state_action_value`` ``(..., 1)``."""
+    return TensorDictModule(QValueNet(obs_dim, action_dim, hidden), in_keys=["observation", "action"],
+                            out_keys=["state_action_value"])
+
+
+def make_actor(obs_dim: int, action_dim: int = 2, hidden: tuple[int, ...] = (256, 256)) -> ProbabilisticActor:
+    """SAC-style actor: reads ``observation``, writes ``loc``, ``scale`` and ``action`` in [-1, 1]
+    (TanhNormal); deterministic mode returns the distribution's mode."""
+    net = nn.Sequential(
+        MLP(in_features=obs_dim, out_features=2 * action_dim, num_cells=list(hidden), activation_class=nn.ReLU),
+        NormalParamExtractor(scale_mapping="biased_softplus_1.0", scale_lb=1e-4),
+    )
+    module = TensorDictModule(net, in_keys=["observation"], out_keys=["loc", "scale"])
+    spec = Bounded(-1.0, 1.0, (action_dim,))
+    return ProbabilisticActor(module, in_keys=["loc", "scale"], spec=spec, distribution_class=TanhNormal,
+                              distribution_kwargs={"low": -1.0, "high": 1.0}, return_log_prob=False)

@@ -1,0 +1,230 @@
+"""``PERLHFLoss``: the reward-free proxy-Q loss of PE-RLHF (and of HACO) as a TorchRL ``LossModule``.
+
+One update reads a batch of transitions ``(s, a_AV, a_exec, I, I_start, C_int, s')`` and returns:
+
+- ``loss_qvalue``: twin proxy-Q critics. TD term on the executed (behaviour) action with
+  zero reward and SAC's entropy bonus,
+  ``y = gamma * (1 - terminated) * (min_k Q'_k(s', a') - alpha * log pi(a'|s'))``, ``a' ~ pi(s')``,
+  ``L_td = 0.5 * sum_k mean (Q_k(s, a_exec) - y)^2``; plus the CQL-style gap on takeover steps
+  ``L_gap = gap_coef * sum_k mean(I * (Q_k(s, a_AV) - Q_k(s, a_exec)))``.
+- ``loss_intervention_qvalue``: twin intervention critics,
+  ``Q_int(s, a) <- C + gamma * (1 - terminated) * min_k Q_int'_k(s', a')`` with ``a`` the agent's
+  action (the paper's equation; ``intervention_critic_action="behavior"`` trains on the executed
+  action instead) and ``C = I_start * (1 - cos(a_AV, a_exec))`` (or ``I_start`` with
+  ``cosine_cost=False``).
+- ``loss_actor``: ``alpha * log pi(a|s) - psi * min_k Q_k(s, a) + beta * min_k Q_int_k(s, a)``.
+- ``loss_alpha``: SAC's temperature loss towards ``target_entropy``.
+- diagnostics (detached): ``alpha``, ``entropy``, ``q_behavior``, ``q_agent``, ``q_intervention``,
+  ``intervention_rate``.
+
+HACO is the same loss fed by an intervention transform without physics or selector.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDict, TensorDictBase, TensorDictParams
+from tensordict.nn import ProbabilisticTensorDictSequential, TensorDictModule
+from tensordict.utils import NestedKey
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+from torchrl.objectives.common import LossModule
+from torchrl.objectives.utils import _vmap_func
+
+INTERVENTION_CRITIC_ACTIONS = ("agent", "behavior")
+
+
+def _rsample_log_prob(dist) -> tuple[torch.Tensor, torch.Tensor]:
+    action = dist.rsample()
+    log_prob = dist.log_prob(action)
+    if log_prob.shape != action.shape[:-1]:  # per-dimension log-probs: sum them
+        log_prob = log_prob.sum(-1)
+    return action, log_prob
+
+
+class PERLHFLoss(LossModule):
+    """PE-RLHF's proxy-Q, CQL-style gap and intervention-cost losses (HACO and ablations as flags).
+
+    Args:
+        actor_network: a ``ProbabilisticActor`` (TanhNormal) reading ``observation`` and writing ``action``.
+        qvalue_network: a ``TensorDictModule`` reading ``observation`` and ``action``, writing
+            ``state_action_value``; copied into ``num_qvalue_nets`` critics with target networks.
+        intervention_qvalue_network: the same for the intervention value ``Q_int`` (its own copies).
+
+    Keyword Args:
+        gap_coef: weight of the CQL-style gap (the authors' code uses 10).
+        psi, intervention_weight: the actor's weights on ``Q`` and ``Q_int`` (``beta``); 0 turns off
+            "intervention minimisation".
+        cosine_cost: ``False`` charges a constant 1 at each takeover start ("w/o cosine similarity").
+        use_reward: add the env reward to the proxy-Q target (a reward-using variant; default off).
+        intervention_critic_action: ``"agent"`` (the paper) or ``"behavior"``.
+        gamma, alpha_init, target_entropy (``"auto"`` = -dim(action)), fixed_alpha, num_qvalue_nets.
+
+    Default keys (``set_keys`` overrides): root ``observation`` (via the networks' in_keys),
+    ``action`` = the agent's proposal ``a_AV`` float ``(..., A)``; under ``next`` (step outputs of the
+    intervention transform): ``behavior_action`` ``(..., A)``, ``intervention`` and
+    ``intervention_start`` bool ``(..., 1)``, ``intervention_cost`` float ``(..., 1)``, and the usual
+    ``reward``, ``done``, ``terminated`` ``(..., 1)``.
+    """
+
+    @dataclass
+    class _AcceptedKeys:
+        action: NestedKey = "action"
+        behavior_action: NestedKey = ("next", "behavior_action")
+        intervention: NestedKey = ("next", "intervention")
+        intervention_start: NestedKey = ("next", "intervention_start")
+        intervention_cost: NestedKey = ("next", "intervention_cost")
+        state_action_value: NestedKey = "state_action_value"
+        reward: NestedKey = "reward"
+        done: NestedKey = "done"
+        terminated: NestedKey = "terminated"
+
+    default_keys = _AcceptedKeys
+    tensor_keys: _AcceptedKeys
+    actor_network: TensorDictModule
+    qvalue_network: TensorDictModule
+    intervention_qvalue_network: TensorDictModule
+    actor_network_params: TensorDictParams
+    qvalue_network_params: TensorDictParams
+    intervention_qvalue_network_params: TensorDictParams
+    target_qvalue_network_params: TensorDictParams
+    target_intervention_qvalue_network_params: TensorDictParams
+
+    def __init__(
+        self,
+        actor_network: ProbabilisticTensorDictSequential,
+        qvalue_network: TensorDictModule,
+        intervention_qvalue_network: TensorDictModule,
+        *,
+        num_qvalue_nets: int = 2,
+        gamma: float = 0.99,
+        gap_coef: float = 10.0,
+        psi: float = 1.0,
+        intervention_weight: float = 1.0,
+        cosine_cost: bool = True,
+        use_reward: bool = False,
+        intervention_critic_action: str = "agent",
+        alpha_init: float = 1.0,
+        fixed_alpha: bool = False,
+        target_entropy: float | str = "auto",
+        action_dim: int | None = None,
+    ) -> None:
+        super().__init__()
+        if intervention_critic_action not in INTERVENTION_CRITIC_ACTIONS:
+            raise ValueError(f"intervention_critic_action={intervention_critic_action!r}; "
+                             f"allowed: {list(INTERVENTION_CRITIC_ACTIONS)}")
+        for name, value in (("gamma", gamma), ("gap_coef", gap_coef), ("psi", psi),
+                            ("intervention_weight", intervention_weight), ("alpha_init", alpha_init)):
+            if not math.isfinite(value) or value < 0 or (name == "gamma" and value > 1):
+                raise ValueError(f"PERLHFLoss {name}={value} is invalid: must be finite and >= 0"
+                                 + (" and <= 1" if name == "gamma" else ""))
+        self.convert_to_functional(actor_network, "actor_network", create_target_params=False)
+        self.convert_to_functional(qvalue_network, "qvalue_network", num_qvalue_nets, create_target_params=True)
+        self.convert_to_functional(intervention_qvalue_network, "intervention_qvalue_network", num_qvalue_nets,
+                                   create_target_params=True)
+        self.num_qvalue_nets = num_qvalue_nets
+        self.gamma, self.gap_coef, self.psi = gamma, gap_coef, psi
+        self.intervention_weight = intervention_weight
+        self.cosine_cost, self.use_reward = cosine_cost, use_reward
+        self.intervention_critic_action = intervention_critic_action
+        if target_entropy == "auto":
+            if action_dim is None:
+                spec = getattr(actor_network, "spec", None)
+                action_dim = spec["action"].shape[-1] if spec is not None else None
+            if action_dim is None:
+                raise ValueError("target_entropy='auto' needs action_dim or an actor with a spec")
+            target_entropy = -float(action_dim)
+        self.register_buffer("target_entropy", torch.tensor(float(target_entropy)))
+        log_alpha = torch.tensor(math.log(alpha_init))
+        if fixed_alpha:
+            self.register_buffer("log_alpha", log_alpha)
+        else:
+            self.log_alpha = torch.nn.Parameter(log_alpha)
+        self._vmap_q = _vmap_func(self.qvalue_network, (None, 0))
+        self._vmap_q_int = _vmap_func(self.intervention_qvalue_network, (None, 0))
+
+    @property
+    def alpha(self) -> torch.Tensor:
+        return self.log_alpha.detach().exp()
+
+    # -- helpers ---------------------------------------------------------------------------
+    def _q(self, vmapped, params, tensordict: TensorDictBase, action: torch.Tensor) -> torch.Tensor:
+        """``(num_qvalue_nets, *batch)`` values of the critics in ``params`` at ``action``."""
+        td = tensordict.select(*self.qvalue_network.in_keys, strict=False).clone(False)
+        td.set(self.tensor_keys.action, action)
+        return vmapped(td, params).get(self.tensor_keys.state_action_value).squeeze(-1)
+
+    def _sample(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
+        with set_exploration_type(ExplorationType.RANDOM), self.actor_network_params.to_module(
+            self.actor_network, preserve_module_state=False
+        ):
+            dist = self.actor_network.get_dist(tensordict)
+            return _rsample_log_prob(dist)
+
+    def intervention_cost(self, tensordict: TensorDictBase) -> torch.Tensor:
+        """``C`` per transition ``(*batch)``: the stored cosine cost, or 1 at each start if not ``cosine_cost``."""
+        start = tensordict.get(self.tensor_keys.intervention_start).squeeze(-1).float()
+        if not self.cosine_cost:
+            return start
+        return tensordict.get(self.tensor_keys.intervention_cost).squeeze(-1).float() * start
+
+    # -- the loss ----------------------------------------------------------------------------
+    def forward(self, tensordict: TensorDictBase) -> TensorDict:
+        keys = self.tensor_keys
+        next_td = tensordict.get("next")
+        not_terminal = 1.0 - next_td.get(keys.terminated).squeeze(-1).float()
+        agent_action = tensordict.get(keys.action)
+        behavior_action = tensordict.get(keys.behavior_action)
+        intervention = tensordict.get(keys.intervention).squeeze(-1).float()
+
+        with torch.no_grad():
+            next_action, next_log_prob = self._sample(next_td)
+            next_q = self._q(self._vmap_q, self.target_qvalue_network_params, next_td, next_action).min(0)[0]
+            target_q = self.gamma * not_terminal * (next_q - self.alpha * next_log_prob)
+            if self.use_reward:
+                target_q = target_q + next_td.get(keys.reward).squeeze(-1)
+            next_q_int = self._q(self._vmap_q_int, self.target_intervention_qvalue_network_params,
+                                 next_td, next_action).min(0)[0]
+            target_q_int = self.intervention_cost(tensordict) + self.gamma * not_terminal * next_q_int
+
+        # Q at the executed action for every transition, and at the agent's action only where the
+        # mentor took over (the gap is zero elsewhere): one critic call on B + n_takeover rows.
+        state = tensordict.select(*self.qvalue_network.in_keys, strict=False).exclude(keys.action)
+        takeover = intervention.nonzero().squeeze(-1)
+        q_all = self._q(self._vmap_q, self.qvalue_network_params, torch.cat([state, state[takeover]], 0),
+                        torch.cat([behavior_action, agent_action[takeover]], 0))
+        batch = behavior_action.shape[0]
+        q_behavior, q_agent = q_all[:, :batch], q_all[:, batch:]
+        loss_td = 0.5 * (q_behavior - target_q).pow(2).mean(-1).sum(0)
+        loss_gap = self.gap_coef * (q_agent - q_behavior[:, takeover]).sum(-1).sum(0) / batch
+
+        int_action = agent_action if self.intervention_critic_action == "agent" else behavior_action
+        q_int = self._q(self._vmap_q_int, self.intervention_qvalue_network_params, tensordict, int_action)
+        loss_q_int = 0.5 * (q_int - target_q_int).pow(2).mean(-1).sum(0)
+
+        new_action, log_prob = self._sample(tensordict)
+        q_new = self._q(self._vmap_q, self.qvalue_network_params.detach(), tensordict, new_action).min(0)[0]
+        q_int_new = self._q(self._vmap_q_int, self.intervention_qvalue_network_params.detach(),
+                            tensordict, new_action).min(0)[0]
+        loss_actor = (self.alpha * log_prob - self.psi * q_new + self.intervention_weight * q_int_new).mean()
+        loss_alpha = -(self.log_alpha * (log_prob.detach() + self.target_entropy)).mean()
+
+        return TensorDict(
+            {
+                "loss_qvalue": loss_td + loss_gap,
+                "loss_intervention_qvalue": loss_q_int,
+                "loss_actor": loss_actor,
+                "loss_alpha": loss_alpha,
+                "alpha": self.alpha,
+                "entropy": -log_prob.detach().mean(),
+                "td_loss": loss_td.detach(),
+                "gap_loss": loss_gap.detach(),
+                "q_behavior": q_behavior.detach().mean(),
+                "q_agent": q_agent.detach().mean() if q_agent.numel() else torch.zeros(()),
+                "q_intervention": q_int.detach().mean(),
+                "intervention_rate": intervention.mean(),
+            },
+            batch_size=[],
+        )
