@@ -2,12 +2,20 @@
 
 from __future__ import annotations
 
+import os
+import pickle
+import zipfile
+from typing import Any
+
 import torch
 from tensordict import TensorDict
 from tensordict.nn import EnsembleModule
 from torch import nn
 
 from pe_rlhf.modules.networks import make_qvalue
+
+_FORMAT = "pe_rlhf.q_ensemble"
+_FORMAT_VERSION = 1
 
 
 class QEnsemble(nn.Module):
@@ -16,6 +24,16 @@ class QEnsemble(nn.Module):
     ``values(observation, action)`` takes ``(*B, obs_dim)`` and ``(*B, A)`` and returns
     ``(K, *B)``. As a tensordict module (``forward``) it reads ``observation`` and ``action``
     and writes ``state_action_value`` ``(K, *B, 1)`` with batch size ``(K, *B)``.
+
+    The members' parameters live in ``self.ensemble.params_td`` with a leading ``K`` dim.
+    ``config`` holds the constructor arguments (``QEnsemble(**q.config)`` rebuilds the
+    architecture); ``save_q_ensemble`` / ``load_q_ensemble`` persist it with the weights.
+
+    Target networks: prefer ``QEnsemble(**q.config)`` + ``load_state_dict`` to
+    ``copy.deepcopy``. tensordict's ``EnsembleModule`` keeps its ``vmap``-ed forward as an
+    attribute bound to the original object, so a deep copy computes with its own parameters
+    but swaps them into the *original's* template module on every call (not thread-safe, and it
+    keeps the original alive).
     """
 
     def __init__(self, obs_dim: int, action_dim: int = 2, num_members: int = 5,
@@ -23,8 +41,17 @@ class QEnsemble(nn.Module):
         super().__init__()
         if num_members < 1:
             raise ValueError(f"QEnsemble num_members={num_members}: must be >= 1")
-        self.num_members = num_members
+        self.obs_dim = int(obs_dim)
+        self.action_dim = int(action_dim)
+        self.num_members = int(num_members)
+        self.hidden = tuple(int(h) for h in hidden)
         self.ensemble = EnsembleModule(make_qvalue(obs_dim, action_dim, hidden), num_copies=num_members)
+
+    @property
+    def config(self) -> dict[str, Any]:
+        """Constructor arguments: ``obs_dim``, ``action_dim``, ``num_members``, ``hidden``."""
+        return {"obs_dim": self.obs_dim, "action_dim": self.action_dim,
+                "num_members": self.num_members, "hidden": self.hidden}
 
     def forward(self, tensordict):
         return self.ensemble(tensordict)
@@ -33,3 +60,73 @@ class QEnsemble(nn.Module):
         batch = observation.shape[:-1]
         td = TensorDict({"observation": observation, "action": action}, batch_size=batch)
         return self.ensemble(td).get("state_action_value").squeeze(-1)
+
+
+def save_q_ensemble(ensemble: QEnsemble, path: str | os.PathLike) -> None:
+    """Write ``ensemble``'s weights and constructor config to ``path`` (``torch.save``).
+
+    The file holds only plain tensors (on CPU), ints, strings, lists and dicts, so it loads
+    with ``torch.load(..., weights_only=True)``.
+    """
+    if not isinstance(ensemble, QEnsemble):
+        raise TypeError(f"save_q_ensemble expects a QEnsemble, got {type(ensemble).__name__}")
+    cfg = ensemble.config
+    payload = {
+        "format": _FORMAT,
+        "version": _FORMAT_VERSION,
+        "config": {"obs_dim": cfg["obs_dim"], "action_dim": cfg["action_dim"],
+                   "num_members": cfg["num_members"], "hidden": list(cfg["hidden"])},
+        "state_dict": {k: v.detach().cpu().clone() for k, v in ensemble.state_dict().items()},
+    }
+    torch.save(payload, os.fspath(path))
+
+
+def load_q_ensemble(path: str | os.PathLike, *, map_location: str | torch.device | None = "cpu",
+                    obs_dim: int | None = None, action_dim: int | None = None,
+                    num_members: int | None = None, hidden: tuple[int, ...] | None = None) -> QEnsemble:
+    """Rebuild a ``QEnsemble`` saved by ``save_q_ensemble``.
+
+    Loads with ``torch.load(path, weights_only=True)`` (no arbitrary pickles). Any of
+    ``obs_dim``, ``action_dim``, ``num_members``, ``hidden`` that is given must match the saved
+    config. A missing, truncated or foreign file, a config mismatch, or weights that do not fit
+    the saved config raise ``ValueError`` naming ``path`` (``FileNotFoundError`` if absent).
+    """
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"load_q_ensemble: no such file {path!r}")
+    try:
+        payload = torch.load(path, map_location=map_location, weights_only=True)
+    except (pickle.UnpicklingError, RuntimeError, EOFError, zipfile.BadZipFile, OSError, ValueError,
+            TypeError, AttributeError, KeyError, IndexError, UnicodeDecodeError) as err:
+        raise ValueError(f"load_q_ensemble: {path!r} is not a readable Q-ensemble checkpoint "
+                         f"(corrupt, truncated, or holds non-weights objects): {err}") from err
+    if not isinstance(payload, dict) or payload.get("format") != _FORMAT:
+        raise ValueError(f"load_q_ensemble: {path!r} is not a Q-ensemble checkpoint "
+                         f"(missing format tag {_FORMAT!r})")
+    if payload.get("version") != _FORMAT_VERSION:
+        raise ValueError(f"load_q_ensemble: {path!r} has format version {payload.get('version')!r}, "
+                         f"expected {_FORMAT_VERSION}")
+    cfg = payload.get("config")
+    state = payload.get("state_dict")
+    keys = ("obs_dim", "action_dim", "num_members", "hidden")
+    if not isinstance(cfg, dict) or any(k not in cfg for k in keys) or not isinstance(state, dict):
+        raise ValueError(f"load_q_ensemble: {path!r} lacks a complete config {keys} or a state_dict")
+    try:
+        saved = {"obs_dim": int(cfg["obs_dim"]), "action_dim": int(cfg["action_dim"]),
+                 "num_members": int(cfg["num_members"]), "hidden": tuple(int(h) for h in cfg["hidden"])}
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"load_q_ensemble: {path!r} has a malformed config {cfg!r}") from err
+    expected = {"obs_dim": obs_dim, "action_dim": action_dim, "num_members": num_members,
+                "hidden": None if hidden is None else tuple(int(h) for h in hidden)}
+    mismatch = {k: (v, saved[k]) for k, v in expected.items() if v is not None and v != saved[k]}
+    if mismatch:
+        detail = ", ".join(f"{k}: expected {e!r}, file has {s!r}" for k, (e, s) in mismatch.items())
+        raise ValueError(f"load_q_ensemble: config mismatch in {path!r}: {detail}")
+    try:
+        ensemble = QEnsemble(**saved)
+        ensemble.load_state_dict(state, strict=True)
+    except (RuntimeError, ValueError, TypeError, KeyError) as err:
+        raise ValueError(f"load_q_ensemble: weights in {path!r} do not fit its config {saved}: {err}") from err
+    if map_location is not None:
+        ensemble = ensemble.to(map_location)
+    return ensemble

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
@@ -34,10 +36,13 @@ class HybridActionSelector(TensorDictModuleBase):
         out_keys: tuple[NestedKey, NestedKey] = ("hybrid_action", "mentor_selected"),
     ):
         super().__init__()
-        if not torch.isfinite(torch.tensor(epsilon_select)):
-            raise ValueError(f"epsilon_select={epsilon_select} must be finite")
-        if variance_threshold is not None and variance_threshold < 0:
-            raise ValueError(f"variance_threshold={variance_threshold} must be >= 0 or None")
+        if not isinstance(epsilon_select, (int, float)) or not math.isfinite(epsilon_select):
+            raise ValueError(f"epsilon_select={epsilon_select!r} must be a finite number")
+        if variance_threshold is not None and (
+            not isinstance(variance_threshold, (int, float)) or not math.isfinite(variance_threshold)
+            or variance_threshold < 0
+        ):
+            raise ValueError(f"variance_threshold={variance_threshold!r} must be a finite number >= 0, or None")
         self.q_ensemble = q_ensemble
         self.epsilon_select = float(epsilon_select)
         self.variance_threshold = variance_threshold

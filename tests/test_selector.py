@@ -1,0 +1,145 @@
+"""HybridActionSelector: the selection rule, isolated with an estimator whose values are exact."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from tensordict import TensorDict
+
+from pe_rlhf.modules.q_ensemble import QEnsemble
+from pe_rlhf.transforms.selector import HybridActionSelector
+
+OBS, ACT = 3, 2
+SLOPES = (-3.0, -1.0, 1.0, 3.0)  # mean 0, population std sqrt(5)
+
+
+class ExactQ(QEnsemble):
+    """Test double of the estimator: ``Q_k(s, a) = a[0] + SLOPES[k] * a[1]`` exactly.
+
+    The members' mean is ``a[0]`` (so the advantage is ``mentor[0] - physics[0]``) and their
+    population std is ``sqrt(5) * |a[1]|``. It isolates the selection rule from any training.
+    """
+
+    def __init__(self):
+        super().__init__(OBS, ACT, num_members=len(SLOPES), hidden=(4,))
+        self.calls = []
+
+    def values(self, observation, action):
+        self.calls.append((observation.shape, torch.is_grad_enabled()))
+        slopes = torch.tensor(SLOPES).reshape(-1, *([1] * (action.dim() - 1)))
+        return action[..., 0] + slopes * action[..., 1]
+
+
+def _acts(x0, x1=0.0, batch=()):
+    return torch.tensor([x0, x1], dtype=torch.float32).expand(*batch, ACT).clone()
+
+
+def test_default_epsilon_is_papers():
+    assert HybridActionSelector(ExactQ()).epsilon_select == 0.5
+
+
+@pytest.mark.parametrize("eps", [0.5, 0.1, 0.0, -0.25])
+def test_boundary_equal_chooses_mentor_just_below_chooses_physics(eps):
+    sel = HybridActionSelector(ExactQ(), epsilon_select=eps)
+    obs = torch.zeros(1, OBS)
+    at = torch.tensor(eps, dtype=torch.float32)  # advantage exactly eps (as float32)
+    below = torch.nextafter(at, torch.tensor(-1.0))
+    phy = _acts(0.0, batch=(1,))
+    hybrid, chosen = sel.select(obs, torch.stack([at, torch.tensor(0.0)])[None], phy)
+    assert chosen.item() is True and hybrid[0, 0].item() == at.item()
+    hybrid, chosen = sel.select(obs, torch.stack([below, torch.tensor(0.0)])[None], phy)
+    assert chosen.item() is False and torch.equal(hybrid, phy)
+
+
+def test_batched_matches_row_by_row_and_runs_the_ensemble_once():
+    q = ExactQ()
+    sel = HybridActionSelector(q, epsilon_select=0.5)
+    g = torch.Generator().manual_seed(0)
+    obs = torch.randn(64, OBS, generator=g)
+    mentor = torch.rand(64, ACT, generator=g) * 2 - 1
+    phy = torch.rand(64, ACT, generator=g) * 2 - 1
+    mentor[:8, 0] = phy[:8, 0] + 0.5  # some rows near the boundary
+    hybrid, chosen = sel.select(obs, mentor, phy)
+    assert len(q.calls) == 1 and q.calls[0][0] == (128, OBS)  # both actions in one call
+    assert hybrid.shape == (64, ACT) and chosen.shape == (64, 1) and chosen.dtype == torch.bool
+    assert 5 < chosen.sum() < 59  # genuinely mixed decisions
+    for i in range(64):
+        h_i, c_i = sel.select(obs[i], mentor[i], phy[i])
+        assert c_i.item() == chosen[i].item()
+        assert torch.equal(h_i, hybrid[i])
+        assert torch.equal(hybrid[i], mentor[i] if c_i.item() else phy[i])
+
+
+def test_unbatched_inputs():
+    sel = HybridActionSelector(ExactQ(), epsilon_select=0.5)
+    hybrid, chosen = sel.select(torch.zeros(OBS), _acts(1.0), _acts(0.0))
+    assert hybrid.shape == (ACT,) and chosen.shape == (1,) and chosen.item() is True
+    assert torch.equal(hybrid, _acts(1.0))
+    hybrid, chosen = sel.select(torch.zeros(OBS), _acts(0.2), _acts(0.0))
+    assert chosen.item() is False and torch.equal(hybrid, _acts(0.0))
+
+
+def test_extra_batch_dims():
+    sel = HybridActionSelector(ExactQ(), epsilon_select=0.5)
+    mentor = _acts(1.0, batch=(4, 3))
+    mentor[1, 2, 0] = 0.0
+    hybrid, chosen = sel.select(torch.zeros(4, 3, OBS), mentor, _acts(0.0, batch=(4, 3)))
+    assert hybrid.shape == (4, 3, ACT) and chosen.shape == (4, 3, 1)
+    assert chosen.sum().item() == 11 and not chosen[1, 2].item()
+
+
+def test_variance_escape():
+    obs = torch.zeros(2, OBS)
+    mentor = _acts(-0.5, batch=(2,))  # advantage -1: physics wins on the mean
+    phy = torch.tensor([[0.5, 1.0], [0.5, 0.0]])  # row 0: members disagree (std sqrt 5); row 1: they agree
+    _, chosen = HybridActionSelector(ExactQ()).select(obs, mentor, phy)
+    assert chosen[:, 0].tolist() == [False, False]
+    _, chosen = HybridActionSelector(ExactQ(), variance_threshold=1.0).select(obs, mentor, phy)
+    assert chosen[:, 0].tolist() == [True, False]
+    _, chosen = HybridActionSelector(ExactQ(), variance_threshold=2.5).select(obs, mentor, phy)
+    assert chosen[:, 0].tolist() == [False, False]  # sqrt(5) = 2.236 is not above 2.5
+
+
+@pytest.mark.parametrize("kwargs", [{"epsilon_select": float("nan")}, {"epsilon_select": float("inf")},
+                                    {"epsilon_select": -float("inf")}, {"variance_threshold": -0.1}])
+def test_invalid_parameters_raise(kwargs):
+    with pytest.raises(ValueError):
+        HybridActionSelector(ExactQ(), **kwargs)
+
+
+def test_selection_runs_without_grad():
+    q = ExactQ()
+    sel = HybridActionSelector(q)
+    sel.select(torch.zeros(2, OBS), _acts(1.0, batch=(2,)), _acts(0.0, batch=(2,)))
+    assert q.calls[-1][1] is False
+    real = QEnsemble(OBS, ACT, 3, (8,))  # a real (trainable) ensemble: no graph is built
+    hybrid, _ = HybridActionSelector(real, epsilon_select=-1e9).select(
+        torch.zeros(2, OBS), _acts(1.0, batch=(2,)).requires_grad_(), _acts(0.0, batch=(2,)))
+    assert not hybrid.requires_grad
+
+
+def test_frozen_ensemble_works():
+    real = QEnsemble(OBS, ACT, 3, (8,))
+    real.requires_grad_(False)
+    hybrid, chosen = HybridActionSelector(real).select(torch.zeros(5, OBS), _acts(1.0, batch=(5,)),
+                                                       _acts(0.0, batch=(5,)))
+    assert hybrid.shape == (5, ACT) and chosen.shape == (5, 1)
+
+
+def test_tensordict_module_form():
+    sel = HybridActionSelector(ExactQ(), epsilon_select=0.5)
+    mentor = _acts(1.0, batch=(6,))
+    mentor[::2, 0] = 0.0
+    td = TensorDict({"observation": torch.zeros(6, OBS), "mentor_action": mentor,
+                     "physics_action": _acts(0.0, batch=(6,))}, [6])
+    out = sel(td)
+    assert out is td
+    assert td["hybrid_action"].shape == (6, ACT) and td["hybrid_action"].dtype == torch.float32
+    assert td["mentor_selected"].shape == (6, 1) and td["mentor_selected"].dtype == torch.bool
+    assert td["mentor_selected"][:, 0].tolist() == [False, True] * 3
+    assert sel.in_keys == ["observation", "mentor_action", "physics_action"]
+    assert sel.out_keys == ["hybrid_action", "mentor_selected"]
+    # unbatched tensordict
+    td1 = sel(TensorDict({"observation": torch.zeros(OBS), "mentor_action": _acts(1.0),
+                          "physics_action": _acts(0.0)}, []))
+    assert td1["hybrid_action"].shape == (ACT,) and td1["mentor_selected"].shape == (1,)
