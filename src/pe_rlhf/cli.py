@@ -101,7 +101,93 @@ def add_evaluate_parser(subparsers: argparse._SubParsersAction) -> argparse.Argu
     return p
 
 
-SUBCOMMANDS: dict[str, AddParser] = {"evaluate": add_evaluate_parser}
+def _make_mentor(name: str, seed: int):
+    """A registered mentor by name; imported lazily (the registry pulls in the simulated drivers)."""
+    try:
+        from pe_rlhf.mentors.registry import make_mentor
+    except ImportError as e:
+        raise ValueError(f"--mentor {name!r}: the mentor registry is unavailable ({e})") from None
+    try:
+        return make_mentor(name, seed)
+    except (KeyError, ValueError) as e:  # the registry's message lists the known names
+        raise ValueError(f"--mentor {name!r}: {e}") from None
+
+
+def run_demo_record(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
+    """Record (or continue) a mentor-only demonstration dataset."""
+    from pe_rlhf.mentors.recording import DemonstrationRecorder, dataset_info, record
+
+    try:
+        config = parse_config_overrides(args.config_override)
+        seeds = list(parse_seeds(args.seeds) if args.seeds else scene_seeds(args.split))
+        if args.steps < 1:
+            raise ValueError(f"--steps {args.steps}: must be >= 1")
+        mentor = _make_mentor(args.mentor, args.seed)
+        name = mentor.name if isinstance(getattr(mentor, "name", None), str) else args.mentor  # aliases resolved
+        recorder = DemonstrationRecorder(args.out, config, name, seeds,
+                                         split=None if args.seeds else args.split)
+    except (ValueError, RuntimeError) as e:
+        parser.error(str(e))
+    with recorder:
+        start = recorder.episodes
+        try:
+            stats = record(mentor, recorder, args.steps, exact=args.exact, progress=not args.no_progress)
+        except KeyboardInterrupt:
+            print(f"\ninterrupted: the episode in progress is dropped; {recorder.episodes - start} new episodes "
+                  f"were saved ({recorder.episodes} in {args.out})", file=sys.stderr)
+            return 130
+        finally:
+            getattr(mentor, "close", lambda: None)()  # the human mentor's window
+    print(f"recorded {stats['episodes']} episodes ({stats['steps']} steps, {stats['steps_per_s']:.0f} steps/s) "
+          f"as episodes {start}..{start + stats['episodes'] - 1} into {args.out}")
+    _print_demo_info(dataset_info(args.out))
+    return 0
+
+
+def _print_demo_info(info: dict) -> None:
+    print(f"{info['directory']}: mentor {info['mentor']}, split {info['split']}, {info['episodes']} episodes, "
+          f"{info['steps']} steps, success rate {info['success_rate']:.2f}, mean return {info['mean_return']:.1f}, "
+          f"mean cost {info['mean_cost']:.2f}")
+
+
+def run_demo_info(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
+    """Print a demonstration dataset's summary."""
+    from pe_rlhf.mentors.recording import dataset_info
+
+    try:
+        info = dataset_info(args.directory)
+    except (ValueError, FileNotFoundError) as e:
+        parser.error(str(e))
+    _print_demo_info(info)
+    return 0
+
+
+def add_demo_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    """``pe-rlhf demo record|info``: crash-safe mentor demonstrations (warm-up data)."""
+    p = subparsers.add_parser("demo", help="record or inspect mentor demonstrations",
+                              description="Record mentor-only driving into a crash-safe dataset, or summarise one.")
+    sub = p.add_subparsers(dest="demo_command", required=True, metavar="ACTION")
+    r = sub.add_parser("record", help="record (or continue) a dataset",
+                       description="Let a mentor drive alone; each finished episode is saved immediately. "
+                       "Re-running on the same --out continues the dataset.")
+    r.add_argument("--mentor", required=True, metavar="NAME", help="professional, amateur, adversarial or human")
+    r.add_argument("--split", default="train", choices=("train", "test"), help="scene split to cycle through")
+    r.add_argument("--seeds", help="scene seeds 'A-B' or 'a,b,c'; replaces --split")
+    r.add_argument("--steps", type=int, required=True, help="env steps to record (whole episodes: may overshoot)")
+    r.add_argument("--exact", action="store_true", help="stop at exactly --steps, cutting the last episode")
+    r.add_argument("--out", required=True, metavar="DIR", help="dataset directory (created or continued)")
+    r.add_argument("--seed", type=int, default=0, help="mentor seed")
+    r.add_argument("--config-override", action="append", default=[], metavar="KEY=VALUE",
+                   help="DrivingConfig field override, repeatable (must match when continuing)")
+    r.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    r.set_defaults(handler=run_demo_record, subparser=r)
+    i = sub.add_parser("info", help="summarise a dataset", description="Episodes, steps, success rate, mentor.")
+    i.add_argument("directory", metavar="DIR")
+    i.set_defaults(handler=run_demo_info, subparser=i)
+    return p
+
+
+SUBCOMMANDS: dict[str, AddParser] = {"evaluate": add_evaluate_parser, "demo": add_demo_parser}
 
 
 def build_parser() -> argparse.ArgumentParser:
