@@ -14,8 +14,8 @@ One update reads a batch of transitions ``(s, a_AV, a_exec, I, I_start, C_int, s
   ``cosine_cost=False``).
 - ``loss_actor``: ``alpha * log pi(a|s) - psi * min_k Q_k(s, a) + beta * min_k Q_int_k(s, a)``.
 - ``loss_alpha``: SAC's temperature loss towards ``target_entropy``.
-- diagnostics (detached): ``alpha``, ``entropy``, ``q_behavior``, ``q_agent``, ``q_intervention``,
-  ``intervention_rate``.
+- diagnostics (detached): ``alpha``, ``entropy``, ``td_loss``, ``gap_loss``, ``q_behavior``, ``q_agent``
+  (0 when the batch has no takeover), ``q_intervention``, ``intervention_rate``.
 
 HACO is the same loss fed by an intervention transform without physics or selector.
 """
@@ -66,7 +66,8 @@ class PERLHFLoss(LossModule):
     ``action`` = the agent's proposal ``a_AV`` float ``(..., A)``; under ``next`` (step outputs of the
     intervention transform): ``behavior_action`` ``(..., A)``, ``intervention`` and
     ``intervention_start`` bool ``(..., 1)``, ``intervention_cost`` float ``(..., 1)``, and the usual
-    ``reward``, ``done``, ``terminated`` ``(..., 1)``.
+    ``reward``, ``done``, ``terminated`` ``(..., 1)``. Any batch shape (flattened to one dim); the input
+    tensordict is read, never written.
     """
 
     @dataclass
@@ -87,6 +88,7 @@ class PERLHFLoss(LossModule):
     qvalue_network: TensorDictModule
     intervention_qvalue_network: TensorDictModule
     actor_network_params: TensorDictParams
+    target_actor_network_params: TensorDictParams  # never created; declared so torchrl does not warn
     qvalue_network_params: TensorDictParams
     intervention_qvalue_network_params: TensorDictParams
     target_qvalue_network_params: TensorDictParams
@@ -116,10 +118,17 @@ class PERLHFLoss(LossModule):
             raise ValueError(f"intervention_critic_action={intervention_critic_action!r}; "
                              f"allowed: {list(INTERVENTION_CRITIC_ACTIONS)}")
         for name, value in (("gamma", gamma), ("gap_coef", gap_coef), ("psi", psi),
-                            ("intervention_weight", intervention_weight), ("alpha_init", alpha_init)):
+                            ("intervention_weight", intervention_weight)):
             if not math.isfinite(value) or value < 0 or (name == "gamma" and value > 1):
                 raise ValueError(f"PERLHFLoss {name}={value} is invalid: must be finite and >= 0"
                                  + (" and <= 1" if name == "gamma" else ""))
+        if not (math.isfinite(alpha_init) and alpha_init > 0):  # log(alpha_init) is the parameter
+            raise ValueError(f"PERLHFLoss alpha_init={alpha_init} is invalid: must be finite and > 0")
+        if isinstance(num_qvalue_nets, bool) or not isinstance(num_qvalue_nets, int) or num_qvalue_nets < 1:
+            raise ValueError(f"PERLHFLoss num_qvalue_nets={num_qvalue_nets!r} is invalid: must be an int >= 1")
+        if target_entropy != "auto" and (isinstance(target_entropy, (str, bool))
+                                         or not math.isfinite(target_entropy)):
+            raise ValueError(f"PERLHFLoss target_entropy={target_entropy!r} is invalid: 'auto' or a finite number")
         self.convert_to_functional(actor_network, "actor_network", create_target_params=False)
         self.convert_to_functional(qvalue_network, "qvalue_network", num_qvalue_nets, create_target_params=True)
         self.convert_to_functional(intervention_qvalue_network, "intervention_qvalue_network", num_qvalue_nets,
@@ -144,23 +153,27 @@ class PERLHFLoss(LossModule):
             self.log_alpha = torch.nn.Parameter(log_alpha)
         self._vmap_q = _vmap_func(self.qvalue_network, (None, 0))
         self._vmap_q_int = _vmap_func(self.intervention_qvalue_network, (None, 0))
+        self._critic_in_keys = {"q": list(self.qvalue_network.in_keys),
+                                "q_int": list(self.intervention_qvalue_network.in_keys)}
 
     @property
     def alpha(self) -> torch.Tensor:
         return self.log_alpha.detach().exp()
 
     # -- helpers ---------------------------------------------------------------------------
-    def _q(self, vmapped, params, tensordict: TensorDictBase, action: torch.Tensor) -> torch.Tensor:
-        """``(num_qvalue_nets, *batch)`` values of the critics in ``params`` at ``action``."""
-        td = tensordict.select(*self.qvalue_network.in_keys, strict=False).clone(False)
+    def _q(self, critic: str, params, tensordict: TensorDictBase, action: torch.Tensor) -> torch.Tensor:
+        """``(num_qvalue_nets, *batch)`` values of ``critic`` (``"q"`` or ``"q_int"``) under ``params`` at ``action``."""
+        td = tensordict.select(*self._critic_in_keys[critic], strict=False)  # a new td: the input is not written
         td.set(self.tensor_keys.action, action)
+        vmapped = self._vmap_q if critic == "q" else self._vmap_q_int
         return vmapped(td, params).get(self.tensor_keys.state_action_value).squeeze(-1)
 
     def _sample(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
         with set_exploration_type(ExplorationType.RANDOM), self.actor_network_params.to_module(
             self.actor_network, preserve_module_state=False
         ):
-            dist = self.actor_network.get_dist(tensordict)
+            # only the actor's inputs: get_dist writes loc/scale, which must not land in the caller's batch
+            dist = self.actor_network.get_dist(tensordict.select(*self.actor_network.in_keys, strict=False))
             return _rsample_log_prob(dist)
 
     def intervention_cost(self, tensordict: TensorDictBase) -> torch.Tensor:
@@ -173,6 +186,8 @@ class PERLHFLoss(LossModule):
     # -- the loss ----------------------------------------------------------------------------
     def forward(self, tensordict: TensorDictBase) -> TensorDict:
         keys = self.tensor_keys
+        if tensordict.batch_dims != 1:  # the takeover rows are indexed along a single batch dim
+            tensordict = tensordict.reshape(-1)
         next_td = tensordict.get("next")
         not_terminal = 1.0 - next_td.get(keys.terminated).squeeze(-1).float()
         agent_action = tensordict.get(keys.action)
@@ -181,19 +196,19 @@ class PERLHFLoss(LossModule):
 
         with torch.no_grad():
             next_action, next_log_prob = self._sample(next_td)
-            next_q = self._q(self._vmap_q, self.target_qvalue_network_params, next_td, next_action).min(0)[0]
+            next_q = self._q("q", self.target_qvalue_network_params, next_td, next_action).min(0)[0]
             target_q = self.gamma * not_terminal * (next_q - self.alpha * next_log_prob)
             if self.use_reward:
                 target_q = target_q + next_td.get(keys.reward).squeeze(-1)
-            next_q_int = self._q(self._vmap_q_int, self.target_intervention_qvalue_network_params,
+            next_q_int = self._q("q_int", self.target_intervention_qvalue_network_params,
                                  next_td, next_action).min(0)[0]
             target_q_int = self.intervention_cost(tensordict) + self.gamma * not_terminal * next_q_int
 
         # Q at the executed action for every transition, and at the agent's action only where the
         # mentor took over (the gap is zero elsewhere): one critic call on B + n_takeover rows.
-        state = tensordict.select(*self.qvalue_network.in_keys, strict=False).exclude(keys.action)
+        state = tensordict.select(*self._critic_in_keys["q"], strict=False).exclude(keys.action)
         takeover = intervention.nonzero().squeeze(-1)
-        q_all = self._q(self._vmap_q, self.qvalue_network_params, torch.cat([state, state[takeover]], 0),
+        q_all = self._q("q", self.qvalue_network_params, torch.cat([state, state[takeover]], 0),
                         torch.cat([behavior_action, agent_action[takeover]], 0))
         batch = behavior_action.shape[0]
         q_behavior, q_agent = q_all[:, :batch], q_all[:, batch:]
@@ -201,12 +216,12 @@ class PERLHFLoss(LossModule):
         loss_gap = self.gap_coef * (q_agent - q_behavior[:, takeover]).sum(-1).sum(0) / batch
 
         int_action = agent_action if self.intervention_critic_action == "agent" else behavior_action
-        q_int = self._q(self._vmap_q_int, self.intervention_qvalue_network_params, tensordict, int_action)
+        q_int = self._q("q_int", self.intervention_qvalue_network_params, tensordict, int_action)
         loss_q_int = 0.5 * (q_int - target_q_int).pow(2).mean(-1).sum(0)
 
         new_action, log_prob = self._sample(tensordict)
-        q_new = self._q(self._vmap_q, self.qvalue_network_params.detach(), tensordict, new_action).min(0)[0]
-        q_int_new = self._q(self._vmap_q_int, self.intervention_qvalue_network_params.detach(),
+        q_new = self._q("q", self.qvalue_network_params.detach(), tensordict, new_action).min(0)[0]
+        q_int_new = self._q("q_int", self.intervention_qvalue_network_params.detach(),
                             tensordict, new_action).min(0)[0]
         loss_actor = (self.alpha * log_prob - self.psi * q_new + self.intervention_weight * q_int_new).mean()
         loss_alpha = -(self.log_alpha * (log_prob.detach() + self.target_entropy)).mean()
@@ -222,7 +237,7 @@ class PERLHFLoss(LossModule):
                 "td_loss": loss_td.detach(),
                 "gap_loss": loss_gap.detach(),
                 "q_behavior": q_behavior.detach().mean(),
-                "q_agent": q_agent.detach().mean() if q_agent.numel() else torch.zeros(()),
+                "q_agent": q_agent.detach().mean() if q_agent.numel() else q_all.new_zeros(()),
                 "q_intervention": q_int.detach().mean(),
                 "intervention_rate": intervention.mean(),
             },

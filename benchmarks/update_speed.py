@@ -1,0 +1,168 @@
+"""ms per update: one ``PERLHFLoss`` update vs one torchrl ``SACLoss`` update, same process.
+
+An update is: forward on a batch, backward of the summed ``loss_*`` terms, an Adam step on all
+the loss module's parameters, and a ``SoftUpdate(tau=0.005)`` step. Both losses use the same
+networks (``make_actor`` / ``make_qvalue``, 256x256 MLPs), obs dim 250 (the real env's), batch
+1024, 2 critics; the PE-RLHF batch has ~25% takeover rows.
+
+These machines are shared and noisy, so the two are interleaved update by update (ABBA order
+in each round) on ``--threads`` threads, every update is timed on its own (wall and process CPU
+time), and the comparison uses medians: the median update of each loss over all rounds, and the
+median over rounds of the per-round ratio.
+
+    python benchmarks/update_speed.py [--rounds 9] [--updates 4] [--json out.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import time
+import warnings
+
+import torch
+from tensordict import TensorDict
+from torchrl.objectives import SACLoss, SoftUpdate
+
+from pe_rlhf.modules import make_actor, make_qvalue
+from pe_rlhf.objectives import PERLHFLoss
+
+ACTION_DIM = 2
+RATIO_TARGET = 1.6
+
+
+def make_batch(batch: int, obs_dim: int, intervention_rate: float, seed: int = 0) -> TensorDict:
+    """A replay-buffer-like batch with every key either loss reads."""
+    g = torch.Generator().manual_seed(seed)
+    agent = torch.rand(batch, ACTION_DIM, generator=g) * 2 - 1
+    intervention = torch.rand(batch, 1, generator=g) < intervention_rate
+    behavior = torch.where(intervention, torch.rand(batch, ACTION_DIM, generator=g) * 2 - 1, agent)
+    start = intervention & (torch.rand(batch, 1, generator=g) < 0.3)
+    cost = 1 - torch.nn.functional.cosine_similarity(agent, behavior, dim=-1).unsqueeze(-1)
+    terminated = torch.rand(batch, 1, generator=g) < 0.01
+    return TensorDict(
+        {
+            "observation": torch.rand(batch, obs_dim, generator=g),
+            "action": agent,
+            "next": {
+                "observation": torch.rand(batch, obs_dim, generator=g),
+                "behavior_action": behavior,
+                "intervention": intervention,
+                "intervention_start": start,
+                "intervention_cost": cost * start,
+                "reward": torch.randn(batch, 1, generator=g),
+                "done": terminated.clone(),
+                "terminated": terminated,
+            },
+        },
+        [batch],
+    )
+
+
+class Updater:
+    """Loss + Adam over all its parameters + SoftUpdate: one ``step()`` is one full update."""
+
+    def __init__(self, loss, lr: float = 3e-4):
+        self.loss = loss
+        self.optim = torch.optim.Adam(loss.parameters(), lr=lr)
+        self.target = SoftUpdate(loss, tau=0.005)
+
+    def step(self, batch: TensorDict) -> None:
+        out = self.loss(batch)
+        total = sum(v for k, v in out.items() if k.startswith("loss_"))
+        self.optim.zero_grad(set_to_none=True)
+        total.backward()
+        self.optim.step()
+        self.target.step()
+
+
+def build(obs_dim: int, hidden: tuple[int, ...]) -> dict[str, Updater]:
+    torch.manual_seed(0)
+    sac = SACLoss(make_actor(obs_dim, hidden=hidden), make_qvalue(obs_dim, hidden=hidden), num_qvalue_nets=2,
+                  loss_function="l2", target_entropy=-float(ACTION_DIM))
+    torch.manual_seed(0)
+    perlhf = PERLHFLoss(make_actor(obs_dim, hidden=hidden), make_qvalue(obs_dim, hidden=hidden),
+                        make_qvalue(obs_dim, hidden=hidden), num_qvalue_nets=2, action_dim=ACTION_DIM)
+    return {"sac": Updater(sac), "perlhf": Updater(perlhf)}
+
+
+def time_update(updater: Updater, batch: TensorDict) -> tuple[float, float]:
+    """(wall, process CPU) ms of one update. A fresh shallow copy: SACLoss writes ``td_error`` into it."""
+    batch = batch.copy()
+    wall, cpu = time.perf_counter(), time.process_time()
+    updater.step(batch)
+    return 1000 * (time.perf_counter() - wall), 1000 * (time.process_time() - cpu)
+
+
+def main(argv: list[str] | None = None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--batch", type=int, default=1024)
+    parser.add_argument("--obs-dim", type=int, default=250)
+    parser.add_argument("--hidden", type=int, default=256)
+    parser.add_argument("--intervention-rate", type=float, default=0.25)
+    parser.add_argument("--rounds", type=int, default=9)
+    parser.add_argument("--updates", type=int, default=4, help="updates per loss per round")
+    parser.add_argument("--warmup", type=int, default=3)
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--json", default=None, help="write the results here")
+    args = parser.parse_args(argv)
+
+    warnings.filterwarnings("ignore", category=UserWarning)  # torchrl's target-updater notes
+    torch.set_num_threads(args.threads)
+    batch = make_batch(args.batch, args.obs_dim, args.intervention_rate)
+    updaters = build(args.obs_dim, (args.hidden, args.hidden))
+    for _ in range(args.warmup):
+        for updater in updaters.values():
+            updater.step(batch.copy())
+
+    wall: dict[str, list[list[float]]] = {name: [] for name in updaters}
+    cpu: dict[str, list[list[float]]] = {name: [] for name in updaters}
+    ratios, cpu_ratios = [], []
+    for r in range(args.rounds):
+        for name in updaters:
+            wall[name].append([])
+            cpu[name].append([])
+        for i in range(args.updates):
+            order = list(updaters) if i % 2 == 0 else list(reversed(updaters))  # ABBA: no first-mover bias
+            for name in order:
+                w, c = time_update(updaters[name], batch)
+                wall[name][-1].append(w)
+                cpu[name][-1].append(c)
+        med = {name: statistics.median(wall[name][-1]) for name in updaters}
+        med_cpu = {name: statistics.median(cpu[name][-1]) for name in updaters}
+        ratios.append(med["perlhf"] / med["sac"])
+        cpu_ratios.append(med_cpu["perlhf"] / med_cpu["sac"])
+        print(f"round {r}: SAC {med['sac']:7.1f} ms  PE-RLHF {med['perlhf']:7.1f} ms  ratio {ratios[-1]:.2f}"
+              f"   (CPU time {med_cpu['sac']:.1f} / {med_cpu['perlhf']:.1f} ms, ratio {cpu_ratios[-1]:.2f})")
+
+    def overall(times: dict[str, list[list[float]]], name: str) -> float:
+        return statistics.median(t for round_ in times[name] for t in round_)
+
+    sac_ms, perlhf_ms = overall(wall, "sac"), overall(wall, "perlhf")
+    result = {
+        "config": {k: v for k, v in vars(args).items() if k != "json"},
+        "torch": torch.__version__,
+        "actual_intervention_rate": float(batch["next", "intervention"].float().mean()),
+        "sac_ms_median": sac_ms,
+        "perlhf_ms_median": perlhf_ms,
+        "ratio_of_medians": perlhf_ms / sac_ms,
+        "ratio_median_of_rounds": statistics.median(ratios),
+        "sac_cpu_ms_median": overall(cpu, "sac"),
+        "perlhf_cpu_ms_median": overall(cpu, "perlhf"),
+        "cpu_ratio_median_of_rounds": statistics.median(cpu_ratios),
+        "ratio_target": RATIO_TARGET,
+        "sac_ms_per_update": wall["sac"],
+        "perlhf_ms_per_update": wall["perlhf"],
+    }
+    print(f"median: SAC {sac_ms:.1f} ms/update, PE-RLHF {perlhf_ms:.1f} ms/update, "
+          f"ratio {result['ratio_of_medians']:.2f}, median of per-round ratios {result['ratio_median_of_rounds']:.2f} "
+          f"(CPU time {result['cpu_ratio_median_of_rounds']:.2f}); target <= {RATIO_TARGET}")
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(result, f, indent=2)
+    return result
+
+
+if __name__ == "__main__":
+    main()

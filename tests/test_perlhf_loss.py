@@ -1,0 +1,510 @@
+"""Tests of ``PERLHFLoss``: outputs, gradient routing, the gap, targets, flags, and a tiny learning task.
+
+Exact checks use hand-built critics whose value is known in closed form (``ConstantQ``:
+``Q(s, a) = v``; ``BehaviorSideQ``: ``Q(s, a) = w * max(a[0], 0)``), so the expected TD and gap
+terms are computed by hand. The loss samples actions from the actor, so every comparison of two
+calls fixes ``torch.manual_seed`` before each call.
+"""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from tensordict import TensorDict
+from tensordict.nn import TensorDictModule
+from torch import nn
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+from torchrl.objectives import SoftUpdate
+
+from pe_rlhf.modules import make_actor, make_qvalue
+from pe_rlhf.objectives import PERLHFLoss
+
+pytestmark = pytest.mark.filterwarnings("ignore:No target network updater")
+
+OBS_DIM, ACTION_DIM, BATCH = 4, 2, 32
+HIDDEN = (16, 16)
+LOSS_KEYS = ("loss_qvalue", "loss_intervention_qvalue", "loss_actor", "loss_alpha")
+DIAGNOSTIC_KEYS = ("alpha", "entropy", "td_loss", "gap_loss", "q_behavior", "q_agent", "q_intervention",
+                   "intervention_rate")
+PARAM_GROUPS = ("actor_network_params", "qvalue_network_params", "intervention_qvalue_network_params",
+                "log_alpha")
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+class ConstantQ(nn.Module):
+    """``Q(s, a) = value`` (one scalar parameter): the TD target is known in closed form."""
+
+    def __init__(self, value: float = 0.0):
+        super().__init__()
+        self.value = nn.Parameter(torch.tensor(float(value)))
+
+    def forward(self, observation: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        return self.value.expand(*observation.shape[:-1], 1)
+
+
+class BehaviorSideQ(nn.Module):
+    """``Q(s, a) = weight * max(a[0], 0)``: raising ``weight`` raises Q only at positive steering."""
+
+    def __init__(self, weight: float = 0.0):
+        super().__init__()
+        self.weight = nn.Parameter(torch.tensor(float(weight)))
+
+    def forward(self, observation: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        return self.weight * action[..., :1].clamp(min=0)
+
+
+def critic(net: nn.Module) -> TensorDictModule:
+    return TensorDictModule(net, in_keys=["observation", "action"], out_keys=["state_action_value"])
+
+
+def make_loss(qvalue=None, intervention_qvalue=None, seed: int = 0, **kwargs) -> PERLHFLoss:
+    torch.manual_seed(seed)
+    actor = make_actor(OBS_DIM, ACTION_DIM, HIDDEN)
+    qvalue = qvalue if qvalue is not None else make_qvalue(OBS_DIM, ACTION_DIM, HIDDEN)
+    intervention_qvalue = (intervention_qvalue if intervention_qvalue is not None
+                           else make_qvalue(OBS_DIM, ACTION_DIM, HIDDEN))
+    return PERLHFLoss(actor, qvalue, intervention_qvalue, **kwargs)
+
+
+def make_batch(batch: int = BATCH, intervention=0.5, start=None, terminated=False, seed: int = 1,
+               shape: tuple[int, ...] | None = None) -> TensorDict:
+    """A batch with every key the loss reads. ``intervention``/``terminated``: a probability or a bool
+    tensor ``(B, 1)``; ``start`` defaults to ``intervention`` (every takeover row is a start)."""
+    g = torch.Generator().manual_seed(seed)
+
+    def flags(value):
+        if isinstance(value, torch.Tensor):
+            return value.bool()
+        return torch.rand(batch, 1, generator=g) < float(value)
+
+    intervention = flags(intervention)
+    start = intervention if start is None else flags(start) & intervention
+    agent = torch.rand(batch, ACTION_DIM, generator=g) * 2 - 1
+    behavior = torch.where(intervention, torch.rand(batch, ACTION_DIM, generator=g) * 2 - 1, agent)
+    cost = (1 - torch.nn.functional.cosine_similarity(agent, behavior, dim=-1)).unsqueeze(-1)
+    terminated = flags(terminated)
+    td = TensorDict(
+        {
+            "observation": torch.randn(batch, OBS_DIM, generator=g),
+            "action": agent,
+            "next": {
+                "observation": torch.randn(batch, OBS_DIM, generator=g),
+                "behavior_action": behavior,
+                "intervention": intervention,
+                "intervention_start": start,
+                "intervention_cost": cost * start,
+                "reward": torch.randn(batch, 1, generator=g),
+                "done": terminated.clone(),
+                "terminated": terminated,
+            },
+        },
+        [batch],
+    )
+    return td.reshape(*shape) if shape is not None else td
+
+
+def run(loss: PERLHFLoss, batch: TensorDict, seed: int = 123) -> TensorDict:
+    torch.manual_seed(seed)
+    return loss(batch.clone())
+
+
+def set_online(params, name: str, values) -> None:
+    """Overwrite the online copies of a hand-built critic's scalar parameter (targets untouched)."""
+    params.get(("module", name)).data.copy_(torch.as_tensor(values, dtype=torch.float32))
+
+
+def grad_groups(loss: PERLHFLoss) -> dict[str, list[bool]]:
+    """Per parameter group: for each tensor, whether it received a non-zero gradient."""
+    out: dict[str, list[bool]] = {}
+    for name, p in loss.named_parameters():
+        out.setdefault(name.split(".")[0], []).append(p.grad is not None and bool(p.grad.abs().sum() > 0))
+    return out
+
+
+def actor_action(loss: PERLHFLoss, obs: torch.Tensor, mode=ExplorationType.DETERMINISTIC) -> torch.Tensor:
+    with torch.no_grad(), set_exploration_type(mode), loss.actor_network_params.to_module(loss.actor_network):
+        return loss.actor_network(TensorDict({"observation": obs}, obs.shape[:1])).get("action")
+
+
+def q_values(loss: PERLHFLoss, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+    """``(num_qvalue_nets, B)`` online proxy-Q values."""
+    values = []
+    with torch.no_grad():
+        for k in range(loss.num_qvalue_nets):
+            with loss.qvalue_network_params[k].to_module(loss.qvalue_network):
+                td = loss.qvalue_network(TensorDict({"observation": obs, "action": action}, obs.shape[:1]))
+            values.append(td.get("state_action_value").squeeze(-1))
+    return torch.stack(values)
+
+
+# --------------------------------------------------------------------------- outputs
+
+
+def test_output_keys_shapes_and_grads():
+    out = run(make_loss(), make_batch())
+    assert set(out.keys()) == set(LOSS_KEYS) | set(DIAGNOSTIC_KEYS)
+    for key in LOSS_KEYS + DIAGNOSTIC_KEYS:
+        assert out[key].shape == torch.Size([]), key
+        assert torch.isfinite(out[key]), key
+    for key in LOSS_KEYS:
+        assert out[key].requires_grad, key
+    for key in DIAGNOSTIC_KEYS:
+        assert not out[key].requires_grad, key
+    assert out["alpha"] == pytest.approx(1.0)
+    assert out["td_loss"] + out["gap_loss"] == pytest.approx(out["loss_qvalue"].item(), rel=1e-5, abs=1e-6)
+
+
+def test_input_batch_is_not_modified():
+    batch = make_batch()
+    before = {k: v.clone() for k, v in batch.items(True, True)}
+    torch.manual_seed(0)
+    make_loss()(batch)
+    after = dict(batch.items(True, True))
+    assert set(after) == set(before)
+    for k, v in before.items():
+        assert torch.equal(after[k], v), k
+
+
+@pytest.mark.parametrize(
+    "key, group",
+    [("loss_qvalue", "qvalue_network_params"),
+     ("loss_intervention_qvalue", "intervention_qvalue_network_params"),
+     ("loss_actor", "actor_network_params"),
+     ("loss_alpha", "log_alpha")],
+)
+def test_each_loss_only_reaches_its_own_parameters(key, group):
+    loss = make_loss()
+    assert {name.split(".")[0] for name, _ in loss.named_parameters()} == set(PARAM_GROUPS)
+    for p in loss.parameters():
+        p.grad = None
+    run(loss, make_batch())[key].backward()
+    groups = grad_groups(loss)
+    assert all(groups[group]), f"{key}: some {group} tensors got no gradient"
+    for other in PARAM_GROUPS:
+        if other != group:
+            assert not any(groups[other]), f"{key} leaked a gradient into {other}"
+    for name, buffer in loss.named_buffers():  # targets are buffers: never part of a graph
+        assert buffer.grad is None and not buffer.requires_grad, name
+
+
+# --------------------------------------------------------------------------- the gap
+
+
+def test_gap_is_exact_and_raising_q_at_the_mentor_action_lowers_loss_qvalue():
+    # Every row a takeover: the agent steers left (-0.5), the mentor right (+0.7).
+    batch = make_batch(intervention=1.0)
+    batch["action"][:, 0] = -0.5
+    batch["next", "behavior_action"][:, 0] = 0.7
+    loss = make_loss(critic(BehaviorSideQ(0.0)), critic(ConstantQ(0.0)))
+    base = run(loss, batch)
+    assert base["gap_loss"] == 0
+    set_online(loss.qvalue_network_params, "weight", [1.0, 2.0])  # Q(s, a_exec) = 0.7 w, Q(s, a_AV) = 0
+    raised = run(loss, batch)
+    assert raised["q_behavior"] == pytest.approx(0.7 * 1.5)
+    assert raised["q_agent"] == pytest.approx(0.0)
+    # gap_coef * sum_k mean(I * (Q_k(s, a_AV) - Q_k(s, a_exec))) = 10 * (0 - 0.7 * (1 + 2))
+    assert raised["gap_loss"] == pytest.approx(-21.0, rel=1e-5)
+    assert raised["loss_qvalue"] < base["loss_qvalue"]
+
+
+def test_gap_counts_only_takeover_rows():
+    intervention = (torch.arange(BATCH) % 4 == 0).unsqueeze(-1)  # a quarter of the rows
+    batch = make_batch(intervention=intervention)
+    batch["action"][:, 0] = -0.5
+    batch["next", "behavior_action"][:, 0] = torch.where(intervention.squeeze(-1), 0.7, 0.3)
+    loss = make_loss(critic(BehaviorSideQ(0.0)), critic(ConstantQ(0.0)), gap_coef=4.0)
+    set_online(loss.qvalue_network_params, "weight", [1.0, 3.0])
+    out = run(loss, batch)
+    assert out["gap_loss"] == pytest.approx(4.0 * 0.25 * (0 - 0.7 * 4.0), rel=1e-5)
+    assert out["intervention_rate"] == pytest.approx(0.25)
+
+
+def test_gradient_step_on_the_gap_separates_mentor_and_agent_values():
+    batch = make_batch(intervention=1.0, seed=5)
+    loss = make_loss(seed=3)
+    before = run(loss, batch)
+    params = list(loss.qvalue_network_params.values(True, True))
+    grads = torch.autograd.grad(before["loss_qvalue"], params)
+    with torch.no_grad():
+        for p, g in zip(params, grads):
+            p -= 1e-3 * g
+    after = run(loss, batch)
+    assert after["loss_qvalue"] < before["loss_qvalue"]
+    assert after["q_behavior"] > before["q_behavior"]
+    assert (after["q_behavior"] - after["q_agent"]) > (before["q_behavior"] - before["q_agent"])
+
+
+def test_no_takeover_means_no_gap():
+    loss = make_loss()
+    out = run(loss, make_batch(intervention=0.0))
+    assert out["gap_loss"] == 0
+    assert out["intervention_rate"] == 0
+    assert out["q_agent"] == 0 and torch.isfinite(out["q_agent"])  # empty selection, no NaN
+    assert torch.equal(out["loss_qvalue"].detach(), out["td_loss"])
+    out["loss_qvalue"].backward()
+    assert all(grad_groups(loss)["qvalue_network_params"])
+
+
+# --------------------------------------------------------------------------- targets and reward
+
+
+def test_reward_is_ignored_unless_use_reward():
+    batch = make_batch()
+    other = batch.clone()
+    other["next", "reward"] = other["next", "reward"] * 7 + 3
+    loss = make_loss()
+    a, b = run(loss, batch), run(loss, other)
+    for key in LOSS_KEYS + DIAGNOSTIC_KEYS:
+        assert torch.equal(a[key], b[key]), key
+    rewarded = make_loss(use_reward=True)
+    a, b = run(rewarded, batch), run(rewarded, other)
+    assert not torch.equal(a["loss_qvalue"], b["loss_qvalue"])
+    assert torch.equal(a["loss_intervention_qvalue"], b["loss_intervention_qvalue"])
+
+
+@pytest.mark.parametrize("use_reward", [False, True])
+def test_terminal_td_target_is_zero_or_the_reward(use_reward):
+    batch = make_batch(terminated=1.0)
+    loss = make_loss(critic(ConstantQ(5.0)), critic(ConstantQ(5.0)), use_reward=use_reward)
+    set_online(loss.qvalue_network_params, "value", [1.5, -2.0])  # targets stay at 5: unused when terminal
+    out = run(loss, batch)
+    y = batch["next", "reward"].squeeze(-1) if use_reward else torch.zeros(BATCH)
+    expected = 0.5 * sum(((c - y) ** 2).mean() for c in (1.5, -2.0))
+    assert out["gap_loss"] == 0  # constant critics: Q(s, a_AV) == Q(s, a_exec)
+    assert out["td_loss"] == pytest.approx(expected.item(), rel=1e-6)
+    assert out["loss_qvalue"].item() == pytest.approx(expected.item(), rel=1e-6)
+
+
+def test_non_terminal_td_target_bootstraps_from_the_target_critics():
+    terminated = (torch.arange(BATCH) % 2 == 0).unsqueeze(-1)
+    batch = make_batch(terminated=terminated)
+    batch["next", "done"] = torch.ones(BATCH, 1, dtype=torch.bool)  # truncated rows still bootstrap
+    gamma = 0.9
+    # alpha ~ 0 so that y = gamma * (1 - terminated) * min_k Q'_k = gamma * (1 - terminated) * 5.
+    loss = make_loss(critic(ConstantQ(5.0)), critic(ConstantQ(0.0)), gamma=gamma, alpha_init=1e-9, fixed_alpha=True)
+    set_online(loss.qvalue_network_params, "value", [1.0, 2.0])
+    out = run(loss, batch)
+    y = gamma * 5.0 * (~terminated.squeeze(-1)).float()
+    expected = 0.5 * sum(((c - y) ** 2).mean() for c in (1.0, 2.0))
+    assert out["td_loss"] == pytest.approx(expected.item(), rel=1e-5)
+
+
+def test_td_target_subtracts_the_entropy_of_the_next_action():
+    # next state == state and constant critics: the loss draws two actor samples (next, current) from
+    # the same distribution; whichever it used for the target, y = gamma * (Q' - alpha * log pi(a'|s')).
+    batch = make_batch(terminated=0.0)
+    batch["next", "observation"] = batch["observation"].clone()
+    gamma, alpha = 0.9, 0.5
+    loss = make_loss(critic(ConstantQ(3.0)), critic(ConstantQ(0.0)), gamma=gamma, alpha_init=alpha, fixed_alpha=True)
+    set_online(loss.qvalue_network_params, "value", [1.0, 2.0])
+    torch.manual_seed(11)
+    draws = []
+    with set_exploration_type(ExplorationType.RANDOM), loss.actor_network_params.to_module(loss.actor_network):
+        for _ in range(2):
+            dist = loss.actor_network.get_dist(TensorDict({"observation": batch["observation"]}, [BATCH]))
+            log_prob = dist.log_prob(dist.rsample())
+            draws.append((log_prob.sum(-1) if log_prob.shape == (BATCH, ACTION_DIM) else log_prob).detach())
+    out = run(loss, batch, seed=11)
+
+    def td(log_prob):
+        y = gamma * (3.0 - alpha * log_prob)
+        return (0.5 * sum(((c - y) ** 2).mean() for c in (1.0, 2.0))).item()
+
+    matches = [(td(draws[i]), -draws[1 - i].mean().item()) for i in range(2)]
+    assert any(out["td_loss"].item() == pytest.approx(t, rel=1e-5) and out["entropy"].item() == pytest.approx(h, rel=1e-5)
+               for t, h in matches), (out["td_loss"], out["entropy"], matches)
+
+
+@pytest.mark.parametrize("psi, beta", [(1.0, 1.0), (0.5, 0.0), (2.0, 3.0)])
+def test_actor_and_alpha_losses(psi, beta):
+    alpha = 2.0
+    loss = make_loss(critic(ConstantQ(0.0)), critic(ConstantQ(0.0)), psi=psi, intervention_weight=beta,
+                     alpha_init=alpha, target_entropy=-1.5)
+    set_online(loss.qvalue_network_params, "value", [4.0, 3.0])
+    set_online(loss.intervention_qvalue_network_params, "value", [0.5, 0.25])
+    out = run(loss, make_batch())
+    # alpha * mean(log pi) - psi * min_k Q_k + beta * min_k Q_int_k
+    assert out["loss_actor"].item() == pytest.approx(-alpha * out["entropy"].item() - psi * 3.0 + beta * 0.25, rel=1e-5)
+    # -log_alpha * mean(log pi + target_entropy)
+    assert out["loss_alpha"].item() == pytest.approx(-math.log(alpha) * (-out["entropy"].item() - 1.5), rel=1e-5)
+    assert out["alpha"].item() == pytest.approx(alpha)
+
+
+@pytest.mark.parametrize("cosine_cost", [True, False])
+def test_intervention_target_is_the_cost_at_terminal_steps(cosine_cost):
+    start = (torch.arange(BATCH) % 3 == 0).unsqueeze(-1)
+    batch = make_batch(intervention=1.0, start=start, terminated=1.0)
+    # a stored cost on every takeover row: only the start of a takeover is charged
+    batch["next", "intervention_cost"] = torch.rand(BATCH, 1, generator=torch.Generator().manual_seed(2)) + 0.1
+    loss = make_loss(critic(ConstantQ(0.0)), critic(ConstantQ(9.0)), cosine_cost=cosine_cost)
+    set_online(loss.intervention_qvalue_network_params, "value", [0.2, 0.6])
+    out = run(loss, batch)
+    start_f = start.squeeze(-1).float()
+    cost = batch["next", "intervention_cost"].squeeze(-1) * start_f if cosine_cost else start_f
+    expected = 0.5 * sum(((d - cost) ** 2).mean() for d in (0.2, 0.6))
+    assert out["loss_intervention_qvalue"].item() == pytest.approx(expected.item(), rel=1e-6)
+    assert out["q_intervention"] == pytest.approx(0.4)
+
+
+def test_intervention_target_bootstraps_without_entropy():
+    start = (torch.arange(BATCH) % 3 == 0).unsqueeze(-1)
+    terminated = (torch.arange(BATCH) % 2 == 0).unsqueeze(-1)
+    batch = make_batch(intervention=1.0, start=start, terminated=terminated)
+    gamma = 0.8
+    loss = make_loss(critic(ConstantQ(0.0)), critic(ConstantQ(2.0)), gamma=gamma)
+    set_online(loss.intervention_qvalue_network_params, "value", [1.0, 3.0])
+    out = run(loss, batch)
+    target = (batch["next", "intervention_cost"].squeeze(-1) * start.squeeze(-1)
+              + gamma * 2.0 * (~terminated.squeeze(-1)).float())
+    expected = 0.5 * sum(((d - target) ** 2).mean() for d in (1.0, 3.0))
+    assert out["loss_intervention_qvalue"].item() == pytest.approx(expected.item(), rel=1e-6)
+
+
+def test_cosine_cost_flag_decides_whether_the_stored_cost_matters():
+    batch = make_batch(intervention=0.5)
+    other = batch.clone()
+    other["next", "intervention_cost"] = other["next", "intervention_cost"] * 0.25 + 0.5 * other[
+        "next", "intervention_start"].float()
+    constant = make_loss(cosine_cost=False)
+    assert torch.equal(run(constant, batch)["loss_intervention_qvalue"],
+                       run(constant, other)["loss_intervention_qvalue"])
+    cosine = make_loss(cosine_cost=True)
+    assert not torch.equal(run(cosine, batch)["loss_intervention_qvalue"],
+                           run(cosine, other)["loss_intervention_qvalue"])
+
+
+@pytest.mark.parametrize("which, used, ignored", [
+    ("agent", ("action",), ("next", "behavior_action")),
+    ("behavior", ("next", "behavior_action"), ("action",)),
+])
+def test_intervention_critic_action(which, used, ignored):
+    kwargs = {} if which == "agent" else {"intervention_critic_action": which}  # "agent" is the default
+    loss = make_loss(**kwargs)
+    batch = make_batch(intervention=0.5)
+    base = run(loss, batch)["loss_intervention_qvalue"]
+    for key, should_change in ((used, True), (ignored, False)):
+        other = batch.clone()
+        other[key] = -other[key]
+        changed = not torch.equal(run(loss, other)["loss_intervention_qvalue"], base)
+        assert changed == should_change, (which, key)
+
+
+def test_multi_dimensional_batch_matches_the_flat_batch():
+    loss = make_loss()
+    flat = run(loss, make_batch(batch=24))
+    nested = run(loss, make_batch(batch=24, shape=(4, 6)))
+    for key in LOSS_KEYS + DIAGNOSTIC_KEYS:
+        torch.testing.assert_close(nested[key], flat[key], msg=key)
+
+
+# --------------------------------------------------------------------------- arguments
+
+
+@pytest.mark.parametrize("kwargs, field", [
+    ({"gamma": 1.5}, "gamma"),
+    ({"gamma": -0.1}, "gamma"),
+    ({"gap_coef": -1.0}, "gap_coef"),
+    ({"psi": math.nan}, "psi"),
+    ({"intervention_weight": math.inf}, "intervention_weight"),
+    ({"alpha_init": 0.0}, "alpha_init"),
+    ({"alpha_init": -1.0}, "alpha_init"),
+    ({"num_qvalue_nets": 0}, "num_qvalue_nets"),
+    ({"intervention_critic_action": "mentor"}, "intervention_critic_action"),
+    ({"target_entropy": "high"}, "target_entropy"),
+    ({"target_entropy": math.nan}, "target_entropy"),
+])
+def test_invalid_arguments_raise_value_error_naming_the_field(kwargs, field):
+    with pytest.raises(ValueError, match=field):
+        make_loss(**kwargs)
+
+
+def test_target_entropy_auto_and_explicit():
+    assert make_loss().target_entropy.item() == -ACTION_DIM
+    assert make_loss(target_entropy=2.0).target_entropy.item() == 2.0
+
+
+# --------------------------------------------------------------------------- target networks
+
+
+def test_soft_update_moves_targets_towards_online_params():
+    loss = make_loss()
+    updater = SoftUpdate(loss, tau=0.005)
+    for name in ("qvalue_network_params", "intervention_qvalue_network_params"):
+        online = getattr(loss, name)
+        with torch.no_grad():
+            for p in online.values(True, True):
+                p.add_(1.0)
+    before = {n: (getattr(loss, "target_" + n).clone(), getattr(loss, n).detach().clone())
+              for n in ("qvalue_network_params", "intervention_qvalue_network_params")}
+    updater.step()
+    for name, (target, online) in before.items():
+        new_target = getattr(loss, "target_" + name)
+        for key, t in target.items(True, True):
+            expected = 0.995 * t + 0.005 * online[key]
+            torch.testing.assert_close(new_target[key], expected)
+            assert (new_target[key] - online[key]).abs().sum() < (t - online[key]).abs().sum(), (name, key)
+    # and the loss reads the updated targets: constant critics make this visible in td_loss
+    const = make_loss(critic(ConstantQ(0.0)), critic(ConstantQ(0.0)), alpha_init=1e-9, fixed_alpha=True, gamma=1.0)
+    updater = SoftUpdate(const, tau=0.5)
+    set_online(const.qvalue_network_params, "value", [4.0, 4.0])
+    updater.step()  # targets: 0 -> 2
+    out = run(const, make_batch(terminated=0.0))
+    assert out["td_loss"] == pytest.approx(0.5 * 2 * (4.0 - 2.0) ** 2, rel=1e-5)
+
+
+# --------------------------------------------------------------------------- learning
+
+
+@pytest.fixture
+def one_thread():
+    """Small nets: one thread is faster, and immune to oversubscription on a loaded machine."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def test_actor_learns_to_steer_to_the_mentors_side(one_thread):
+    """The mentor corrects every left-steering proposal to (+0.7, the agent's throttle).
+
+    After a couple of hundred updates the actor's deterministic steering is positive and the
+    proxy-Q prefers the mentor's action to the initially corrected agent actions."""
+    torch.manual_seed(0)
+    hidden = (64, 64)
+    loss = PERLHFLoss(make_actor(OBS_DIM, ACTION_DIM, hidden), make_qvalue(OBS_DIM, ACTION_DIM, hidden),
+                      make_qvalue(OBS_DIM, ACTION_DIM, hidden))
+    optim = torch.optim.Adam(loss.parameters(), lr=3e-4)
+    updater = SoftUpdate(loss, tau=0.005)
+    test_obs = torch.randn(512, OBS_DIM)
+    initial = actor_action(loss, test_obs, ExplorationType.RANDOM)
+    bad = initial[:, 0] < 0  # the proposals the mentor corrected at the start
+    assert 0.2 < bad.float().mean() < 0.8
+    batch_size = 128
+    for _ in range(200):
+        obs = torch.randn(batch_size, OBS_DIM)
+        agent = actor_action(loss, obs, ExplorationType.RANDOM)
+        takeover = agent[:, :1] < 0
+        behavior = torch.where(takeover, torch.stack([torch.full_like(agent[:, 0], 0.7), agent[:, 1]], -1), agent)
+        cost = (1 - torch.nn.functional.cosine_similarity(agent, behavior, dim=-1)).unsqueeze(-1) * takeover
+        no = torch.zeros(batch_size, 1, dtype=torch.bool)
+        batch = TensorDict({
+            "observation": obs, "action": agent,
+            "next": {"observation": torch.randn(batch_size, OBS_DIM), "behavior_action": behavior,
+                     "intervention": takeover, "intervention_start": takeover, "intervention_cost": cost,
+                     "reward": torch.zeros(batch_size, 1), "done": no, "terminated": no}}, [batch_size])
+        out = loss(batch)
+        optim.zero_grad()
+        sum(out[k] for k in LOSS_KEYS).backward()
+        optim.step()
+        updater.step()
+    final = actor_action(loss, test_obs)
+    assert final[:, 0].mean() > 0.3, final[:, 0].mean()
+    obs = test_obs[bad]
+    mentor = torch.stack([torch.full_like(initial[bad, 0], 0.7), initial[bad, 1]], -1)
+    q_mentor, q_agent = q_values(loss, obs, mentor).min(0)[0], q_values(loss, obs, initial[bad]).min(0)[0]
+    assert q_mentor.mean() > q_agent.mean()
+    assert (q_mentor > q_agent).float().mean() > 0.9
