@@ -77,13 +77,14 @@ class Updater:
         self.target.step()
 
 
-def build(obs_dim: int, hidden: tuple[int, ...]) -> dict[str, Updater]:
+def build(obs_dim: int, hidden: tuple[int, ...], intervention_critics: int = 2) -> dict[str, Updater]:
     torch.manual_seed(0)
     sac = SACLoss(make_actor(obs_dim, hidden=hidden), make_qvalue(obs_dim, hidden=hidden), num_qvalue_nets=2,
                   loss_function="l2", target_entropy=-float(ACTION_DIM))
     torch.manual_seed(0)
     perlhf = PERLHFLoss(make_actor(obs_dim, hidden=hidden), make_qvalue(obs_dim, hidden=hidden),
-                        make_qvalue(obs_dim, hidden=hidden), num_qvalue_nets=2, action_dim=ACTION_DIM)
+                        make_qvalue(obs_dim, hidden=hidden), num_qvalue_nets=2, action_dim=ACTION_DIM,
+                        num_intervention_qvalue_nets=intervention_critics)
     return {"sac": Updater(sac), "perlhf": Updater(perlhf)}
 
 
@@ -105,13 +106,15 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--updates", type=int, default=4, help="updates per loss per round")
     parser.add_argument("--warmup", type=int, default=3)
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--intervention-critics", type=int, default=2,
+                        help="copies of Q_int in PERLHFLoss (2 = the authors' twin, 1 = a single critic)")
     parser.add_argument("--json", default=None, help="write the results here")
     args = parser.parse_args(argv)
 
     warnings.filterwarnings("ignore", category=UserWarning)  # torchrl's target-updater notes
     torch.set_num_threads(args.threads)
     batch = make_batch(args.batch, args.obs_dim, args.intervention_rate)
-    updaters = build(args.obs_dim, (args.hidden, args.hidden))
+    updaters = build(args.obs_dim, (args.hidden, args.hidden), args.intervention_critics)
     for _ in range(args.warmup):
         for updater in updaters.values():
             updater.step(batch.copy())
