@@ -15,11 +15,13 @@ Writes under ``next`` (step outputs, float32 / bool with a trailing dim of 1 for
 ``intervention_start`` (1,)  first step of a takeover
 ``intervention_cost`` (1,)   ``1 - cos(a_AV, a_exec)`` at a start, else 0 (1 if a norm is ~0)
 ``mentor_action`` (A,)       the mentor's proposal (always present)
-``physics_action`` (A,)      the physics proposal during a PE-RLHF takeover, else zeros
-``mentor_selected`` (1,)     the selector trusted the mentor (True in HACO takeovers)
+``physics_action`` (A,)      the physics proposal during a PE-RLHF takeover, else zeros (also in warm-up)
+``mentor_selected`` (1,)     the mentor's action was executed in a takeover (always in HACO and warm-up)
 ===========================  =========================================================
 
-Put it inside each worker's env factory (it drives the simulator of a single env).
+Put it inside each worker's env factory (it drives the simulator of a single env). Mentor and physics
+receive the simulator: the ``DrivingEnv`` of a driving env, or the gymnasium env's ``unwrapped`` of any
+other TorchRL env over a gymnasium env (e.g. ``GymEnv("Pendulum-v1")``).
 """
 
 from __future__ import annotations
@@ -28,7 +30,7 @@ import numpy as np
 import torch
 from tensordict import TensorDictBase
 from torchrl.data import Composite, Unbounded
-from torchrl.envs import Transform
+from torchrl.envs import EnvBase, Transform
 
 from pe_rlhf.envs.torchrl_env import unwrap
 
@@ -70,7 +72,11 @@ class InterventionTransform(Transform):
 
     @property
     def driving_env(self):
-        return unwrap(self.parent)
+        """The simulator handed to the mentor and physics: the ``DrivingEnv`` of a driving env; for any
+        other base env (e.g. ``GymEnv("Pendulum-v1")``) the underlying gymnasium env's ``unwrapped``."""
+        sim = unwrap(self.parent)
+        gym_env = getattr(sim, "_env", None) if isinstance(sim, EnvBase) else None
+        return getattr(gym_env, "unwrapped", gym_env) if gym_env is not None else sim
 
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
         self._in_takeover = False
@@ -90,7 +96,7 @@ class InterventionTransform(Transform):
         mentor_selected = bool(takeover)
         executed = agent_action
         if warmup:
-            takeover, executed = True, mentor_action
+            takeover, executed, mentor_selected = True, mentor_action, True
         elif takeover:
             executed = mentor_action
             if self.selector is not None:

@@ -1,0 +1,28 @@
+"""``examples/pendulum_intervention.py`` learns: the mentor's takeover rate falls over a short training run."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+
+EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "pendulum_intervention.py"
+
+
+def _load_example():
+    spec = importlib.util.spec_from_file_location("pendulum_intervention", EXAMPLE)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_takeover_rate_falls_over_training():
+    example = _load_example()
+    rates = example.main(total_frames=2800, seed=0, verbose=False)
+    # 2800 frames = 2 warm-up batches (not returned: the mentor drives every step) + 12 batches of 200.
+    assert len(rates) == 12 and all(0.0 <= r <= 1.0 for r in rates)
+    quarter = len(rates) // 4
+    first, last = float(np.mean(rates[:quarter])), float(np.mean(rates[-quarter:]))
+    assert first > 0.2, rates  # a fresh agent gets taken over often
+    assert last < 0.7 * first, rates
