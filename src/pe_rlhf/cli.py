@@ -68,6 +68,7 @@ def _seeds(args: argparse.Namespace) -> list[int]:
 
 def run_evaluate(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
     """Evaluate one registered policy, print the stage table, write JSON if asked."""
+    import pe_rlhf.mentors.registry  # noqa: F401  (registers professional / amateur / adversarial)
     from pe_rlhf.evaluation import evaluate, make_policy, print_summary, write_json
 
     try:

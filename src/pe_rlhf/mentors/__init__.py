@@ -1,10 +1,25 @@
 """Mentors: simulated drivers of controlled skill and a real person at the controls.
 
 All implement :class:`~pe_rlhf.mentors.base.Mentor`; ``make_mentor(name, seed)`` builds
-one by name (``professional``, ``amateur``, ``adversarial``, ``human``).
+one by name (``professional``, ``amateur``, ``adversarial``/``bad``, ``human``).
 """
 
 from pe_rlhf.mentors.base import Mentor, MentorDecision
 from pe_rlhf.mentors.driver import DriverParams, PrivilegedDriver
+from pe_rlhf.mentors.registry import MENTOR_NAMES, MentorPolicy, make_mentor
+from pe_rlhf.mentors.simulated import PRESETS, SimulatedMentor, SkillProfile
+from pe_rlhf.mentors.takeover import TakeoverRule
 
-__all__ = ["DriverParams", "Mentor", "MentorDecision", "PrivilegedDriver"]
+__all__ = [
+    "MENTOR_NAMES",
+    "PRESETS",
+    "DriverParams",
+    "Mentor",
+    "MentorDecision",
+    "MentorPolicy",
+    "PrivilegedDriver",
+    "SimulatedMentor",
+    "SkillProfile",
+    "TakeoverRule",
+    "make_mentor",
+]

@@ -18,11 +18,12 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from highway_env import utils
 
 from pe_rlhf.envs.action import controls_to_action
 from pe_rlhf.physics.idm import IDMParams, idm_acceleration
 from pe_rlhf.physics.perception import Neighbour, ego_lane_slot, leader_and_follower, neighbours
-from pe_rlhf.physics.policy import IDMMobilPolicy, PhysicsConfig
+from pe_rlhf.physics.policy import MIN_CONTROL_SPEED, IDMMobilPolicy, PhysicsConfig
 
 LOOK_AHEAD = 90.0  # [m] lane planning horizon
 TTC_BRAKE = 2.0  # [s]
@@ -38,6 +39,12 @@ class DriverParams:
     idm: IDMParams = IDMParams(max_acceleration=2.5, comfortable_braking=4.0, minimum_gap=4.0, time_headway=1.2)
     speed_factor: float = 1.0  # desired speed = factor * lane speed limit
     max_safe_braking: float = 3.0  # [m/s^2] MOBIL safety: braking imposed on the new follower
+    # Lane-keeping cascade (highway-env's): lateral offset -> heading -> yaw rate. A driver
+    # with a reaction delay needs slower loops, or the delayed loop rings (weaving).
+    tau_heading: float = 0.2  # [s]
+    tau_lateral: float = 0.6  # [s]
+    tau_pursuit: float = 0.1  # [s] look-ahead for the reference heading
+    max_heading_offset: float = math.pi / 4  # [rad] largest angle to the lane taken to reach it
 
 
 class PrivilegedDriver:
@@ -68,8 +75,25 @@ class PrivilegedDriver:
         if self.target_lane != slot:
             accel = min(accel, self._lane_accel(env, items, self.target_lane, v0))
         accel = min(accel, self._ttc_brake(env, items))
-        steering = self._tracker._steering(env, self.target_lane)
+        steering = self._steering(env, self.target_lane)
         return controls_to_action(steering, accel)
+
+    def _steering(self, env, slot: int) -> float:
+        """Front-wheel angle [rad] tracking lane slot ``slot``: pursuit + heading loop (``DriverParams`` taus)."""
+        p, ego, route, k = self.params, env.vehicle, env.route, env.route_segment
+        lane = env.road.network.get_lane((*route.segments[k], slot))
+        s, lat = lane.local_coordinates(ego.position)
+        ahead = s + ego.speed * p.tau_pursuit
+        if ahead > lane.length and k + 1 < len(route.segments):
+            future_heading = env.road.network.get_lane((*route.segments[k + 1], slot)).heading_at(ahead - lane.length)
+        else:
+            future_heading = lane.heading_at(min(ahead, lane.length))
+        speed = max(ego.speed, MIN_CONTROL_SPEED)  # 1/speed gains would saturate at a standstill
+        heading_cmd = math.asin(float(np.clip(-lat / p.tau_lateral / speed, -1, 1)))
+        heading_ref = future_heading + float(np.clip(heading_cmd, -p.max_heading_offset, p.max_heading_offset))
+        rate = utils.wrap_to_pi(heading_ref - ego.heading) / p.tau_heading
+        slip = math.asin(float(np.clip(ego.LENGTH / 2 / speed * rate, -1, 1)))
+        return math.atan(2 * math.tan(slip))
 
     # -- planning --------------------------------------------------------------------
     def _free_distance(self, env, items: list[Neighbour], lane: int) -> tuple[float, float]:
