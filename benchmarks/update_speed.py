@@ -77,7 +77,7 @@ class Updater:
         self.target.step()
 
 
-def build(obs_dim: int, hidden: tuple[int, ...], intervention_critics: int = 2) -> dict[str, Updater]:
+def build(obs_dim: int, hidden: tuple[int, ...], intervention_critics: int = 1) -> dict[str, Updater]:
     torch.manual_seed(0)
     sac = SACLoss(make_actor(obs_dim, hidden=hidden), make_qvalue(obs_dim, hidden=hidden), num_qvalue_nets=2,
                   loss_function="l2", target_entropy=-float(ACTION_DIM))
@@ -106,8 +106,9 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--updates", type=int, default=4, help="updates per loss per round")
     parser.add_argument("--warmup", type=int, default=3)
     parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--intervention-critics", type=int, default=2,
-                        help="copies of Q_int in PERLHFLoss (2 = the authors' twin, 1 = a single critic)")
+    parser.add_argument("--intervention-critics", type=int, default=1,
+                        help="copies of Q_int in PERLHFLoss (1 = the paper's single critic, the default; "
+                             "2 = the authors' twin)")
     parser.add_argument("--json", default=None, help="write the results here")
     args = parser.parse_args(argv)
 

@@ -62,6 +62,9 @@ def critic(net: nn.Module) -> TensorDictModule:
 
 
 def make_loss(qvalue=None, intervention_qvalue=None, seed: int = 0, **kwargs) -> PERLHFLoss:
+    """A loss with twin intervention critics (the authors' code), so the min over copies is exercised;
+    the default single critic (the paper) has its own test."""
+    kwargs.setdefault("num_intervention_qvalue_nets", 2)
     torch.manual_seed(seed)
     actor = make_actor(OBS_DIM, ACTION_DIM, HIDDEN)
     qvalue = qvalue if qvalue is not None else make_qvalue(OBS_DIM, ACTION_DIM, HIDDEN)
@@ -508,3 +511,14 @@ def test_actor_learns_to_steer_to_the_mentors_side(one_thread):
     q_mentor, q_agent = q_values(loss, obs, mentor).min(0)[0], q_values(loss, obs, initial[bad]).min(0)[0]
     assert q_mentor.mean() > q_agent.mean()
     assert (q_mentor > q_agent).float().mean() > 0.9
+
+
+def test_default_is_the_papers_single_intervention_critic():
+    torch.manual_seed(0)
+    loss = PERLHFLoss(make_actor(OBS_DIM, ACTION_DIM, HIDDEN), critic(ConstantQ(0.0)), critic(ConstantQ(0.0)))
+    assert loss.intervention_qvalue_network_params.get(("module", "value")).shape[0] == 1
+    assert loss.qvalue_network_params.get(("module", "value")).shape[0] == 2  # the proxy Q stays a twin
+    set_online(loss.intervention_qvalue_network_params, "value", [0.7])
+    out = run(loss, make_batch())
+    assert out["q_intervention"] == pytest.approx(0.7)
+    assert out["loss_actor"].item() == pytest.approx(-1.0 * out["entropy"].item() - 0.0 + 0.7, rel=1e-5)

@@ -158,6 +158,7 @@ class BrokenDownCar(Obstacle):
 
     LENGTH = 4.5
     WIDTH = 1.9
+    color = (150, 95, 60)  # drawn brown, apart from the (yellow) ego
 
 
 class TrafficCone(Obstacle):
@@ -165,6 +166,7 @@ class TrafficCone(Obstacle):
 
     LENGTH = 0.5
     WIDTH = 0.5
+    color = (255, 130, 0)
 
 
 class WarningTriangle(Obstacle):
@@ -172,6 +174,7 @@ class WarningTriangle(Obstacle):
 
     LENGTH = 0.4
     WIDTH = 0.7
+    color = (220, 30, 30)
 
 
 def release_claims(vehicle) -> None:

@@ -10,7 +10,18 @@ from pe_rlhf.mentors.registry import MENTOR_NAMES, MentorPolicy, make_mentor
 from pe_rlhf.mentors.simulated import PRESETS, SimulatedMentor, SkillProfile
 from pe_rlhf.mentors.takeover import TakeoverRule
 
+
+
+def __getattr__(name: str):
+    if name == "HumanMentor":  # lazy: importing it opens pygame's display machinery
+        from pe_rlhf.mentors.human import HumanMentor
+
+        return HumanMentor
+    raise AttributeError(f"module 'pe_rlhf.mentors' has no attribute {name!r}")
+
+
 __all__ = [
+    "HumanMentor",
     "MENTOR_NAMES",
     "PRESETS",
     "DriverParams",

@@ -61,8 +61,9 @@ class PERLHFLoss(LossModule):
         use_reward: add the env reward to the proxy-Q target (a reward-using variant; default off).
         intervention_critic_action: ``"agent"`` (the paper) or ``"behavior"``.
         gamma, alpha_init, target_entropy (``"auto"`` = -dim(action)), fixed_alpha, num_qvalue_nets.
-        num_intervention_qvalue_nets: copies of ``Q_int`` (default: ``num_qvalue_nets``, the authors'
-            twin); 1 trains a single intervention critic, ~20% cheaper per update.
+        num_intervention_qvalue_nets: copies of ``Q_int``. 1 (default) is the paper's single intervention
+            value function (parameters omega in its Algorithm 1); 2 is the authors' code (a twin, min
+            over both), ~20% more time per update.
 
     Default keys (``set_keys`` overrides): root ``observation`` (via the networks' in_keys),
     ``action`` = the agent's proposal ``a_AV`` float ``(..., A)``; under ``next`` (step outputs of the
@@ -103,7 +104,7 @@ class PERLHFLoss(LossModule):
         intervention_qvalue_network: TensorDictModule,
         *,
         num_qvalue_nets: int = 2,
-        num_intervention_qvalue_nets: int | None = None,
+        num_intervention_qvalue_nets: int = 1,
         gamma: float = 0.99,
         gap_coef: float = 10.0,
         psi: float = 1.0,
@@ -127,8 +128,6 @@ class PERLHFLoss(LossModule):
                                  + (" and <= 1" if name == "gamma" else ""))
         if not (math.isfinite(alpha_init) and alpha_init > 0):  # log(alpha_init) is the parameter
             raise ValueError(f"PERLHFLoss alpha_init={alpha_init} is invalid: must be finite and > 0")
-        if num_intervention_qvalue_nets is None:
-            num_intervention_qvalue_nets = num_qvalue_nets
         for name, value in (("num_qvalue_nets", num_qvalue_nets),
                             ("num_intervention_qvalue_nets", num_intervention_qvalue_nets)):
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
