@@ -277,3 +277,26 @@ def test_load_missing_file(tmp_path):
 def test_save_rejects_non_ensemble(tmp_path):
     with pytest.raises(TypeError):
         save_q_ensemble(torch.nn.Linear(2, 2), tmp_path / "x.pt")
+
+
+def test_ensemble_schedule_frozen_and_refreshed():
+    from pe_rlhf.modules.ensemble_training import EnsembleSchedule
+
+    frozen = EnsembleSchedule(warmup_steps=100, warmup_fit_steps=50)
+    fits = [(step, frozen.due(step)) for step in range(0, 1000, 10)]
+    assert [f for f in fits if f[1]] == [(100, 50)]  # one fit right after warm-up, then frozen
+
+    refreshed = EnsembleSchedule(warmup_steps=100, refresh_every=300, warmup_fit_steps=50, refresh_steps=20)
+    fits = [(step, n) for step in range(0, 1000, 10) if (n := refreshed.due(step))]
+    assert fits == [(100, 50), (400, 20), (700, 20)]
+
+    resumed = EnsembleSchedule(warmup_steps=100, refresh_every=300)
+    resumed.load_state_dict(refreshed.state_dict())
+    assert resumed.due(800) == 0 and resumed.due(1000) == 500  # continues, no repeat
+
+
+def test_ensemble_schedule_rejects_bad_values():
+    from pe_rlhf.modules.ensemble_training import EnsembleSchedule
+
+    with pytest.raises(ValueError, match="refresh_every"):
+        EnsembleSchedule(warmup_steps=10, refresh_every=-1)

@@ -215,3 +215,42 @@ def fit_q_ensemble(
         "loss": loss,
         "loss_history": hist,
     }
+
+
+class EnsembleSchedule:
+    """When to (re)fit the Q-ensemble: once after warm-up, then frozen or refreshed every N env steps.
+
+    ``refresh_every=0`` (default) freezes the ensemble after the warm-up fit, as in the paper;
+    ``refresh_every=N`` refits it (``refresh_steps`` gradient steps, on the data the caller passes:
+    e.g. the warm-up buffer plus mentor-executed transitions) every ``N`` env steps after warm-up.
+    ``due(env_step)`` is True exactly once per scheduled point; ``state_dict`` keeps the last fit
+    step so a resumed run neither repeats nor skips a refresh.
+    """
+
+    def __init__(self, warmup_steps: int, refresh_every: int = 0, warmup_fit_steps: int = 2000,
+                 refresh_steps: int = 500):
+        for name, value in (("warmup_steps", warmup_steps), ("refresh_every", refresh_every),
+                            ("warmup_fit_steps", warmup_fit_steps), ("refresh_steps", refresh_steps)):
+            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+                raise ValueError(f"EnsembleSchedule {name}={value!r} is invalid: must be an int >= 0")
+        self.warmup_steps, self.refresh_every = warmup_steps, refresh_every
+        self.warmup_fit_steps, self.refresh_steps = warmup_fit_steps, refresh_steps
+        self.last_fit: int | None = None
+
+    def due(self, env_step: int) -> int:
+        """Gradient steps to fit now (0 if nothing is due); marks the fit as done."""
+        if env_step < self.warmup_steps:
+            return 0
+        if self.last_fit is None:
+            self.last_fit = env_step
+            return self.warmup_fit_steps
+        if self.refresh_every and env_step - self.last_fit >= self.refresh_every:
+            self.last_fit = env_step
+            return self.refresh_steps
+        return 0
+
+    def state_dict(self) -> dict:
+        return {"last_fit": self.last_fit}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.last_fit = state.get("last_fit")
