@@ -1,0 +1,1 @@
+"""Training: recipe helpers shared by the recipes (config, builders, logging, checkpoints)."""

@@ -1,0 +1,473 @@
+"""The recipe's configuration: load ``config.yaml``, apply a profile and overrides, validate every field.
+
+``load_config(path, overrides)`` layers, each on top of the one before:
+
+1. :data:`DEFAULTS` (the paper's values; a copy of ``recipes/pe_rlhf/config.yaml``, kept equal by a test),
+2. the YAML file (``path``, or the recipe's own ``config.yaml`` when found; may be partial),
+3. the profile's overrides (:data:`PROFILES`; ``profile`` from the overrides, else from the file),
+4. the dotlist overrides (``["optim.lr=3e-4", "mentor.name=amateur"]``),
+
+then :func:`validate_config`. Every group is closed (struct mode): an unknown key fails naming it.
+Two groups are open by design and checked by name instead: ``env`` (any
+:class:`~pe_rlhf.envs.config.DrivingConfig` field) and ``mentor.kwargs`` (arguments to ``make_mentor``).
+Every error is a :class:`ConfigError` (a ``ValueError``) that names the dotted field, the value and
+what is allowed.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import importlib.util
+import math
+import os
+import re
+from collections.abc import Callable, Iterable, Mapping
+from pathlib import Path
+from typing import Any
+
+from omegaconf import DictConfig, ListConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
+
+from pe_rlhf.envs.config import DrivingConfig
+
+RECIPES_ENV_VAR = "PE_RLHF_RECIPES"
+RECIPE_CONFIG = Path("pe_rlhf") / "config.yaml"  # relative to the recipes directory
+OPEN_GROUPS = ("env", "mentor.kwargs")  # free-form groups, checked by name in validate_config
+
+# The paper's values (spec §3). Keep equal to recipes/pe_rlhf/config.yaml (tests/test_training_config.py).
+DEFAULTS: dict[str, Any] = {
+    "seed": 0,
+    "profile": "paper",
+    "env": {},
+    "mentor": {"name": "professional", "seed": 0, "kwargs": {}},
+    "physics": {"enabled": True, "see_obstacles": False, "use_idm": True, "use_mobil": True},
+    "selector": {"enabled": True, "epsilon_select": 0.5, "variance_threshold": None, "num_members": 5,
+                 "hidden": [256, 256], "warmup_fit_steps": 2000, "refresh_every": 0, "refresh_steps": 500,
+                 "fit_loss": "mean", "target_noise": 0.1, "lr": 3.0e-4, "batch_size": 256},
+    "collector": {"total_frames": 30000, "frames_per_batch": 100, "warmup_steps": 10000,
+                  "learning_starts": 100, "backend": "single", "num_workers": 1},
+    "replay_buffer": {"size": 100000, "batch_size": 1024},
+    "optim": {"lr": 1.0e-4, "updates_per_batch": 100, "max_grad_norm": 10.0},
+    "loss": {"gamma": 0.99, "tau": 0.005, "gap_coef": 10.0, "psi": 1.0, "intervention_weight": 1.0,
+             "cosine_cost": True, "intervention_critic_action": "agent", "num_qvalue_nets": 2,
+             "num_intervention_qvalue_nets": 1, "target_entropy": "auto", "alpha_init": 1.0,
+             "hidden": [256, 256]},
+    "logger": {"out_dir": None, "csv": True, "wandb": False, "wandb_mode": "offline",
+               "wandb_project": "pe-rlhf", "tensorboard": False, "log_every": 1},
+    "eval": {"every_frames": 5000, "episodes": 10, "split": "test", "video": True},
+    "checkpoint": {"every_frames": 5000, "keep": 2},
+}
+
+PROFILES: dict[str, dict[str, Any]] = {
+    # The paper's appendix values: DEFAULTS / config.yaml unchanged.
+    "paper": {},
+    # A 30K-step run on 2 CPU cores in well under 45 min. Measured here (2 cores, obs 250, 256x256):
+    # a PERLHFLoss update costs 56 ms at batch 1024 and 25 ms at batch 256; a PE-RLHF env step (mentor,
+    # IDM-MOBIL, 5-member selector, actor) 16 ms; an ensemble fit step 47 ms. The paper's 30K updates
+    # at batch 1024 alone take ~28 min, ~50 min with the env and 6 evaluations of 10 episodes (up to
+    # 60K extra env steps) plus video. So: batch 256 (updates ~12.5 min) keeping the paper's
+    # update-to-data ratio (100 updates per 100 env steps) and its 256x256 networks, since the UTD
+    # ratio and the function class matter more to sample efficiency than the batch (256 is SAC's usual
+    # batch); evaluation 5 episodes every 10K steps without video (<= 15K env steps, ~3 min).
+    # Estimate: ~12.5 (updates) + ~8 (30K env steps) + ~3 (eval) + ~1.5 (2000 fit steps) = ~25 min.
+    "cpu": {
+        "replay_buffer": {"batch_size": 256},
+        "optim": {"updates_per_batch": 100},
+        "eval": {"every_frames": 10000, "episodes": 5, "video": False},
+        "checkpoint": {"every_frames": 10000},
+    },
+    # CI: the whole loop (warm-up, ensemble fit, updates, eval, checkpoint) in about a minute.
+    "smoke": {
+        "env": {"horizon": 100, "min_blocks": 2, "max_blocks": 2},
+        "selector": {"num_members": 2, "hidden": [32, 32], "warmup_fit_steps": 20, "refresh_steps": 10,
+                     "batch_size": 32},
+        "collector": {"total_frames": 300, "frames_per_batch": 50, "warmup_steps": 100, "learning_starts": 50},
+        "replay_buffer": {"size": 1000, "batch_size": 32},
+        "optim": {"updates_per_batch": 5},
+        "loss": {"hidden": [32, 32]},
+        "eval": {"every_frames": 300, "episodes": 1, "video": False},
+        "checkpoint": {"every_frames": 300, "keep": 1},
+    },
+}
+
+BACKENDS = ("single", "multisync", "multiasync", "ray")
+FIT_LOSSES = ("mean", "member")
+INTERVENTION_CRITIC_ACTIONS = ("agent", "behavior")
+WANDB_MODES = ("offline", "online", "disabled")
+SPLITS = ("train", "test")
+_IMPORT_PATH = re.compile(r"^[A-Za-z_]\w*(\.[A-Za-z_]\w*)*:[A-Za-z_]\w*$")
+
+
+class ConfigError(ValueError):
+    """An invalid configuration value; ``field`` is the dotted name (``optim.lr``) when known."""
+
+    def __init__(self, message: str, field: str | None = None):
+        super().__init__(message)
+        self.field = field
+
+
+def _fail(field: str, value: Any, allowed: str) -> ConfigError:
+    if isinstance(value, (DictConfig, ListConfig)):
+        value = OmegaConf.to_container(value)
+    return ConfigError(f"{field}={value!r} is invalid: {allowed}", field)
+
+
+# --------------------------------------------------------------------------- loading
+
+
+def default_config_path() -> Path | None:
+    """The recipe's ``config.yaml``: under ``$PE_RLHF_RECIPES`` if set, else the first ``recipes/``
+    found walking up from this file (a source checkout); None if neither (an installed package,
+    which then uses :data:`DEFAULTS`)."""
+    root = os.environ.get(RECIPES_ENV_VAR)
+    if root:
+        path = Path(root) / RECIPE_CONFIG
+        if not path.is_file():
+            raise ConfigError(f"${RECIPES_ENV_VAR}={root!r} has no {RECIPE_CONFIG}")
+        return path
+    for parent in Path(__file__).resolve().parents:
+        path = parent / "recipes" / RECIPE_CONFIG
+        if path.is_file():
+            return path
+    return None
+
+
+def _check_key(cfg: DictConfig, key: str, origin: str) -> None:
+    """Fail unless ``key`` (dotted) exists in ``cfg`` or lies inside an open group."""
+    node: Any = cfg
+    parts = key.split(".")
+    for i, part in enumerate(parts):
+        prefix = ".".join(parts[:i]) or "the config"
+        if not isinstance(node, DictConfig):
+            raise ConfigError(f"unknown config key {key!r} ({origin}): {prefix} is a value, not a group", key)
+        if not OmegaConf.is_struct(node):
+            return
+        if part not in node:
+            raise ConfigError(f"unknown config key {key!r} ({origin}): {prefix} has no {part!r}; "
+                              f"known: {sorted(node.keys())}", key)
+        node = node[part]
+
+
+def _leaf_keys(values: Mapping, prefix: str = "") -> Iterable[str]:
+    for key, value in values.items():
+        path = f"{prefix}{key}"
+        if isinstance(value, Mapping) and value and path not in OPEN_GROUPS:
+            yield from _leaf_keys(value, path + ".")
+        else:
+            yield path
+
+
+def _merge(cfg: DictConfig, values: Mapping | DictConfig, origin: str) -> None:
+    if isinstance(values, DictConfig):
+        values = OmegaConf.to_container(values)
+    if not isinstance(values, Mapping):
+        raise ConfigError(f"{origin} must be a mapping of config groups, got {type(values).__name__}")
+    for key in _leaf_keys(values):
+        _check_key(cfg, key, origin)
+    try:
+        cfg.merge_with(values)
+    except OmegaConfBaseException as e:
+        raise ConfigError(f"cannot apply {origin}: {e}") from e
+
+
+def _parse_overrides(overrides: Iterable[str]) -> list[tuple[str, str]]:
+    if isinstance(overrides, str):  # a lone "a=b" would otherwise be iterated character by character
+        overrides = [overrides]
+    parsed = []
+    for item in overrides:
+        if not isinstance(item, str) or "=" not in item or not item.split("=", 1)[0].strip():
+            raise ConfigError(f"override {item!r} is not of the form key=value (e.g. optim.lr=3e-4)")
+        key, value = item.split("=", 1)
+        parsed.append((key.strip(), value))
+    return parsed
+
+
+def load_config(path: str | Path | None = None, overrides: Iterable[str] = (), *,
+                apply_profile: bool = True, validate: bool = True) -> DictConfig:
+    """DEFAULTS <- YAML file <- profile <- dotlist overrides, validated (see the module docstring).
+
+    ``path=None`` reads the recipe's ``config.yaml`` (:func:`default_config_path`), or uses
+    :data:`DEFAULTS` alone when there is none. ``overrides`` are ``key=value`` strings, values in
+    YAML syntax (``loss.hidden=[128,128]``, ``selector.variance_threshold=null``).
+    ``apply_profile=False`` skips step 3 (the profile is only recorded): for a config written by
+    :func:`save_config`, whose values already include its profile and overrides.
+    """
+    cfg = OmegaConf.create(copy.deepcopy(DEFAULTS))
+    OmegaConf.set_struct(cfg, True)
+    for group in OPEN_GROUPS:
+        OmegaConf.set_struct(OmegaConf.select(cfg, group), False)
+    path = Path(path) if path is not None else default_config_path()
+    if path is not None:
+        if not Path(path).is_file():
+            raise ConfigError(f"config file {str(path)!r} not found")
+        _merge(cfg, OmegaConf.load(path), f"config file {path}")
+    parsed = _parse_overrides(overrides)
+    profile = next((v.strip() for k, v in reversed(parsed) if k == "profile"), cfg.profile)
+    if profile not in PROFILES:
+        raise _fail("profile", profile, f"allowed: {list(PROFILES)}")
+    if apply_profile:
+        _merge(cfg, PROFILES[profile], f"profile {profile!r}")
+    cfg.profile = profile
+    for key, value in parsed:
+        _check_key(cfg, key, "command-line override")
+        try:
+            cfg.merge_with(OmegaConf.from_dotlist([f"{key}={value}"]))
+        except OmegaConfBaseException as e:
+            raise ConfigError(f"cannot apply override {key}={value}: {e}", key) from e
+    if validate:
+        validate_config(cfg)
+    return cfg
+
+
+# --------------------------------------------------------------------------- field rules
+
+Rule = Callable[[Any], str | None]  # value -> None if fine, else what is allowed
+
+
+def _int(minimum: int) -> Rule:
+    def rule(v):
+        ok = isinstance(v, int) and not isinstance(v, bool) and v >= minimum
+        return None if ok else f"must be an integer >= {minimum}"
+    return rule
+
+
+def _number(lo: float | None = None, hi: float | None = None, lo_open: bool = False,
+            hi_open: bool = False) -> Rule:
+    if lo is not None and hi is not None:
+        allowed = f"must be a finite number in {'(' if lo_open else '['}{lo}, {hi}{')' if hi_open else ']'}"
+    elif lo is not None:
+        allowed = f"must be a finite number {'>' if lo_open else '>='} {lo}"
+    else:
+        allowed = "must be a finite number"
+
+    def rule(v):
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            return allowed
+        if lo is not None and (v < lo or (lo_open and v == lo)):
+            return allowed
+        if hi is not None and (v > hi or (hi_open and v == hi)):
+            return allowed
+        return None
+    return rule
+
+
+def _optional(rule: Rule) -> Rule:
+    return lambda v: None if v is None else (None if rule(v) is None else f"{rule(v)}, or null")
+
+
+def _bool(v) -> str | None:
+    return None if isinstance(v, bool) else "must be true or false"
+
+
+def _choice(*options: str) -> Rule:
+    return lambda v: None if v in options else f"allowed: {list(options)}"
+
+
+def _string(v) -> str | None:
+    return None if isinstance(v, str) and v.strip() else "must be a non-empty string"
+
+
+def _hidden(v) -> str | None:
+    ok = isinstance(v, (list, tuple, ListConfig)) and len(v) > 0 and all(
+        isinstance(h, int) and not isinstance(h, bool) and h >= 1 for h in v)
+    return None if ok else "must be a non-empty list of positive integers (layer widths), e.g. [256, 256]"
+
+
+def _target_entropy(v) -> str | None:
+    return None if v == "auto" or _number()(v) is None else "must be 'auto' (= -dim(action)) or a finite number"
+
+
+def _mentor_name(v) -> str | None:
+    from pe_rlhf.mentors.registry import MENTOR_NAMES
+
+    if isinstance(v, str) and (v in MENTOR_NAMES or _IMPORT_PATH.match(v)):
+        return None
+    return f"allowed: {list(MENTOR_NAMES)} or a 'package.module:ClassName' import path"
+
+
+def _backend(v) -> str | None:
+    if v not in BACKENDS:
+        return f"allowed: {list(BACKENDS)}"
+    if v == "ray" and importlib.util.find_spec("ray") is None:
+        return "'ray' needs the ray package, which is not installed (pip install ray); use multisync or multiasync"
+    return None
+
+
+RULES: dict[str, Rule] = {
+    "seed": _int(0),
+    "profile": _choice(*PROFILES),
+    "mentor.name": _mentor_name, "mentor.seed": _int(0),
+    **{f"physics.{k}": _bool for k in ("enabled", "see_obstacles", "use_idm", "use_mobil")},
+    "selector.enabled": _bool, "selector.epsilon_select": _number(),
+    "selector.variance_threshold": _optional(_number(0)), "selector.num_members": _int(1),
+    "selector.hidden": _hidden, "selector.warmup_fit_steps": _int(0), "selector.refresh_every": _int(0),
+    "selector.refresh_steps": _int(0), "selector.fit_loss": _choice(*FIT_LOSSES),
+    "selector.target_noise": _number(0), "selector.lr": _number(0, lo_open=True),
+    "selector.batch_size": _int(1),
+    "collector.total_frames": _int(1), "collector.frames_per_batch": _int(1),
+    "collector.warmup_steps": _int(0), "collector.learning_starts": _int(0),
+    "collector.backend": _backend, "collector.num_workers": _int(1),
+    "replay_buffer.size": _int(1), "replay_buffer.batch_size": _int(1),
+    "optim.lr": _number(0, lo_open=True), "optim.updates_per_batch": _int(1),
+    "optim.max_grad_norm": _optional(_number(0, lo_open=True)),
+    "loss.gamma": _number(0, 1), "loss.tau": _number(0, 1, lo_open=True), "loss.gap_coef": _number(0),
+    "loss.psi": _number(0), "loss.intervention_weight": _number(0), "loss.cosine_cost": _bool,
+    "loss.intervention_critic_action": _choice(*INTERVENTION_CRITIC_ACTIONS),
+    "loss.num_qvalue_nets": _int(1), "loss.num_intervention_qvalue_nets": _int(1),
+    "loss.target_entropy": _target_entropy, "loss.alpha_init": _number(0, lo_open=True), "loss.hidden": _hidden,
+    "logger.out_dir": _optional(_string), **{f"logger.{k}": _bool for k in ("csv", "wandb", "tensorboard")},
+    "logger.wandb_mode": _choice(*WANDB_MODES), "logger.wandb_project": _string, "logger.log_every": _int(1),
+    "eval.every_frames": _int(0), "eval.episodes": _int(1), "eval.split": _choice(*SPLITS), "eval.video": _bool,
+    "checkpoint.every_frames": _int(0), "checkpoint.keep": _int(1),
+}
+
+
+# --------------------------------------------------------------------------- validation
+
+
+def validate_config(cfg: DictConfig) -> None:
+    """Check every field (:data:`RULES`), the env (as a DrivingConfig), the mentor's kwargs, and the
+    fields that constrain each other; raise :class:`ConfigError` at the first problem."""
+    for key in _leaf_keys(OmegaConf.to_container(cfg)):
+        if key not in RULES and key not in OPEN_GROUPS:
+            raise ConfigError(f"unknown config key {key!r}; known: {sorted(RULES) + list(OPEN_GROUPS)}", key)
+    for field, rule in RULES.items():
+        value = OmegaConf.select(cfg, field, default=_MISSING)
+        if value is _MISSING:
+            raise ConfigError(f"{field} is missing from the config", field)
+        problem = rule(value)
+        if problem is not None:
+            raise _fail(field, value, problem)
+    _check_env(cfg.env)
+    _check_mentor_kwargs(cfg.mentor)
+    _check_relations(cfg)
+
+
+_MISSING = object()
+
+
+def _check_relations(cfg: DictConfig) -> None:
+    c = cfg.collector
+    pairs = (("collector.frames_per_batch", c.frames_per_batch, "collector.total_frames", c.total_frames),
+             ("collector.warmup_steps", c.warmup_steps, "collector.total_frames", c.total_frames),
+             ("replay_buffer.batch_size", cfg.replay_buffer.batch_size, "replay_buffer.size", cfg.replay_buffer.size))
+    for field, value, bound_field, bound in pairs:
+        if value > bound:
+            raise _fail(field, value, f"must be <= {bound_field} ({bound})")
+    if c.learning_starts >= c.total_frames:
+        raise _fail("collector.learning_starts", c.learning_starts,
+                    f"must be < collector.total_frames ({c.total_frames}), or no update ever runs")
+    if c.backend == "single" and c.num_workers != 1:
+        raise _fail("collector.num_workers", c.num_workers,
+                    "the single backend runs one env: use 1, or collector.backend=multisync|multiasync")
+    if cfg.mentor.name == "human" and c.backend != "single":
+        raise _fail("collector.backend", c.backend, "a human mentor drives one env in this process: use single")
+    method_name(cfg)  # physics/selector combination
+    if cfg.selector.enabled:
+        for field in ("collector.warmup_steps", "selector.warmup_fit_steps"):
+            if OmegaConf.select(cfg, field) < 1:
+                raise _fail(field, OmegaConf.select(cfg, field),
+                            "must be >= 1 with selector.enabled (the Q-ensemble is fitted on warm-up data)")
+
+
+def _env_type_problem(default: Any, value: Any) -> str | None:
+    """What DrivingConfig would choke on with a TypeError (or accept wrongly): judged by the default's type."""
+    if isinstance(default, bool):
+        return _bool(value)
+    if isinstance(default, int):
+        return None if isinstance(value, int) and not isinstance(value, bool) else "must be an integer"
+    if isinstance(default, float):
+        return None if _number()(value) is None else "must be a finite number"
+    if isinstance(default, tuple):
+        ok = isinstance(value, (list, tuple)) and all(isinstance(x, str) for x in value)
+        return None if ok else "must be a list of names"
+    return None
+
+
+def _check_env(env: DictConfig) -> None:
+    values = OmegaConf.to_container(env, resolve=True)
+    defaults = DrivingConfig()
+    known = [f.name for f in dataclasses.fields(DrivingConfig)]
+    for key, value in values.items():
+        if key not in known:
+            raise _fail(f"env.{key}", value, f"unknown DrivingConfig field; known: {known}")
+        problem = _env_type_problem(getattr(defaults, key), value)
+        if problem:
+            raise _fail(f"env.{key}", value, problem)
+    try:
+        DrivingConfig.from_dict(values)
+    except (ValueError, TypeError) as e:
+        match = re.match(r"DrivingConfig\.(\w+)=(.*?) is invalid: (.*)", str(e), re.S)
+        if match is None:
+            raise ConfigError(f"env={values!r} is invalid: {e}", "env") from e
+        name, shown, allowed = match.groups()
+        raise ConfigError(f"env.{name}={shown} is invalid: {allowed}", f"env.{name}") from e
+
+
+def _check_mentor_kwargs(mentor: DictConfig) -> None:
+    if mentor.name == "human" or ":" in mentor.name:
+        return  # constructor arguments, checked when the mentor is built
+    from pe_rlhf.mentors.simulated import SkillProfile
+
+    known = sorted(f.name for f in dataclasses.fields(SkillProfile))
+    for key in mentor.kwargs:
+        if key not in known:
+            raise _fail(f"mentor.kwargs.{key}", mentor.kwargs[key],
+                        f"unknown SkillProfile field for mentor {mentor.name!r}; known: {known}")
+
+
+# --------------------------------------------------------------------------- views
+
+
+def method_name(cfg: DictConfig) -> str:
+    """``"PE-RLHF"`` (physics + selector) or ``"HACO"`` (neither); the mixed cases are errors.
+
+    The intervention transform takes physics and selector together or not at all; the paper's
+    "w/o ensemble" ablation is ``selector.num_members=1``, its physics ablations are
+    ``physics.use_idm`` / ``physics.use_mobil``.
+    """
+    physics, selector = cfg.physics.enabled, cfg.selector.enabled
+    if physics and selector:
+        return "PE-RLHF"
+    if not physics and not selector:
+        return "HACO"
+    if selector:
+        raise _fail("selector.enabled", True, "needs physics.enabled=true (PE-RLHF chooses between the "
+                    "mentor's and the physics action); set both false for HACO")
+    raise _fail("physics.enabled", True, "needs selector.enabled=true (the selector decides when the physics "
+                "action replaces the mentor's); set both false for HACO, or selector.num_members=1 for the "
+                "'w/o ensemble' ablation")
+
+
+def driving_config(cfg: DictConfig, **changes: Any) -> DrivingConfig:
+    """The :class:`DrivingConfig` of ``cfg.env``, with ``changes`` on top (e.g. ``split="test"`` for eval)."""
+    values = {**OmegaConf.to_container(cfg.env, resolve=True), **changes}
+    _check_env(OmegaConf.create(values))
+    return DrivingConfig.from_dict(values)
+
+
+def physics_config(cfg: DictConfig):
+    """The :class:`~pe_rlhf.physics.policy.PhysicsConfig` of ``cfg.physics`` (paper IDM/MOBIL parameters)."""
+    from pe_rlhf.physics.policy import PhysicsConfig
+
+    p = cfg.physics
+    return PhysicsConfig(see_obstacles=p.see_obstacles, use_idm=p.use_idm, use_mobil=p.use_mobil)
+
+
+def to_container(cfg: DictConfig) -> dict[str, Any]:
+    """A plain, resolved ``dict`` copy of ``cfg`` (for checkpoints, loggers, ``json``)."""
+    return OmegaConf.to_container(cfg, resolve=True)
+
+
+def save_config(cfg: DictConfig, path: str | Path) -> Path:
+    """Write ``cfg`` (resolved) as YAML; ``load_config(path, apply_profile=False)`` reads it back equal
+    (with the profile applied again, the profile's values would overwrite the saved overrides)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    OmegaConf.save(cfg, path, resolve=True)
+    return path
+
+
+__all__ = ["BACKENDS", "DEFAULTS", "PROFILES", "RULES", "ConfigError", "default_config_path", "driving_config",
+           "load_config", "method_name", "physics_config", "save_config", "to_container", "validate_config"]

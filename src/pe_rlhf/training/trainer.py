@@ -1,0 +1,172 @@
+"""The PE-RLHF (and HACO) training loop: warm-up, ensemble fit, online collection with takeovers, updates.
+
+Phases, top to bottom in :func:`train`:
+
+1. warm-up: the mentor drives ``collector.warmup_steps`` steps (the transform forces it); the
+   transitions, with the env reward, fill a warm-up buffer and, relabelled (the mentor's action
+   stands as the agent's), the replay buffer;
+2. the Q-ensemble is fitted on the warm-up data (then frozen, or refreshed on a schedule);
+3. online: the collector runs the actor inside ``InterventionTransform`` (mentor + physics +
+   selector); ``optim.updates_per_batch`` PERLHFLoss updates follow every batch once
+   ``collector.learning_starts`` frames are in;
+4. every ``eval.every_frames``: evaluation on the test split without the mentor; every
+   ``checkpoint.every_frames``: a checkpoint (``--resume DIR`` continues from it).
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import torch
+from tqdm import tqdm
+
+from pe_rlhf.evaluation import TorchRLPolicyAdapter, evaluate
+from pe_rlhf.modules import EnsembleSchedule, add_next_actions, fit_q_ensemble
+from pe_rlhf.training import builders
+from pe_rlhf.training.steps import batch_metrics, relabel_warmup, update
+
+EVAL_KEYS = ("episodic_return", "success_rate", "safety_violation", "travel_distance", "travel_velocity",
+             "overtake_count")
+
+
+class Counters:
+    """Cumulative training bookkeeping (saved in checkpoints)."""
+
+    def __init__(self):
+        self.frames = self.takeover_steps = self.takeover_starts = self.mentor_chosen_steps = 0.0
+        self.safety_violations = self.episodes = self.successes = self.updates = 0.0
+        self.online_frames = self.env_seconds = self.update_seconds = 0.0
+
+    def add(self, m: dict[str, float], warmup: bool) -> None:
+        self.frames += m["steps"]
+        self.safety_violations += m["safety_violations"]
+        self.episodes += m["episodes"]
+        self.successes += m["successes"]
+        if not warmup:
+            self.online_frames += m["steps"]
+            self.takeover_steps += m["takeover_steps"]
+            self.takeover_starts += m["takeover_starts"]
+            self.mentor_chosen_steps += m["mentor_chosen_steps"]
+
+    def state_dict(self) -> dict:
+        return dict(vars(self))
+
+    def load_state_dict(self, state: dict) -> None:
+        vars(self).update(state)
+
+
+def _next_multiple(frames: float, every: int) -> float:
+    """The next frame count at which a periodic job runs (never, when ``every`` is 0)."""
+    return float("inf") if every <= 0 else (int(frames) // every + 1) * every
+
+
+def evaluate_actor(actor, cfg, env_config, episodes: int) -> dict:
+    """Deterministic evaluation of the actor on the first ``episodes`` seeds of ``eval.split``."""
+    from pe_rlhf.envs import scene_seeds
+
+    seeds = scene_seeds(str(cfg.eval.split))[:episodes]
+    return evaluate(TorchRLPolicyAdapter(actor), seeds, env_config, progress=False).to_dict()
+
+
+def iteration_log(counters: Counters, m: dict, losses: dict, started: float) -> dict[str, float]:
+    online = max(counters.online_frames, 1.0)
+    log = {
+        "env_steps": counters.frames,
+        "wall_time": time.time() - started,
+        "train/safety_violations_total": counters.safety_violations,
+        "train/takeover_rate": m["takeover_steps"] / max(m["steps"], 1.0),
+        "train/takeover_count": counters.takeover_starts,
+        "train/takeover_data_usage": counters.takeover_steps / online,
+        "train/value_takeover_count": counters.mentor_chosen_steps,
+        "train/value_takeover_rate": counters.mentor_chosen_steps / max(counters.takeover_steps, 1.0),
+        "train/intervention_cost": m["intervention_cost"],
+        "train/success_rate_total": counters.successes / max(counters.episodes, 1.0),
+        "time/env_seconds": counters.env_seconds,
+        "time/update_seconds": counters.update_seconds,
+    }
+    for k, v in losses.items():
+        log[f"loss/{k[5:]}" if k.startswith("loss_") else f"train/{k}"] = v
+    return log
+
+
+def train(cfg, out_dir: Path, logger, checkpointer=None, resume_state: dict | None = None) -> dict:
+    """Run the recipe described by ``cfg``; returns the final evaluation summary dict.
+
+    ``logger`` has ``log(step, metrics)``; ``checkpointer(step, objects, state)`` saves (optional).
+    """
+    from pe_rlhf.training.config import driving_config
+
+    torch.manual_seed(int(cfg.seed))
+    env_config = driving_config(cfg)
+    mentor, physics, ensemble = builders.build_mentor(cfg), builders.build_physics(cfg), builders.build_q_ensemble(cfg)
+    env = builders.build_train_env(cfg, env_config, mentor, ensemble, physics)
+    actor = builders.build_actor(cfg)
+    loss, soft_update = builders.build_loss(cfg, actor)
+    optimizers = builders.build_optimizers(cfg, loss)
+    replay, warmup_buffer = builders.build_replay_buffer(cfg), builders.build_replay_buffer(cfg)
+    schedule = EnsembleSchedule(int(cfg.collector.warmup_steps), int(cfg.selector.refresh_every),
+                                int(cfg.selector.warmup_fit_steps), int(cfg.selector.refresh_steps))
+    counters = Counters()
+    objects = {"modules": {"loss": loss, **({"ensemble": ensemble} if ensemble is not None else {})},
+               "optimizers": optimizers, "replay_buffers": {"replay": replay, "warmup": warmup_buffer}}
+    transform = env.transform[-1]
+    if resume_state is not None:
+        counters.load_state_dict(resume_state["counters"])
+        schedule.load_state_dict(resume_state["schedule"])
+        mentor.load_state_dict(resume_state["mentor"])
+        transform.total_steps = int(resume_state["transform_steps"])
+    remaining = int(cfg.collector.total_frames) - int(counters.frames)
+    collector = builders.build_collector(cfg, env, actor) if remaining > 0 else None
+    started, losses = time.time(), {}
+    next_eval = _next_multiple(counters.frames, int(cfg.eval.every_frames))
+    next_ckpt = _next_multiple(counters.frames, int(cfg.checkpoint.every_frames))
+    bar = tqdm(total=int(cfg.collector.total_frames), initial=int(counters.frames), desc="PE-RLHF", unit="step")
+    t_env = time.time()
+    for batch in collector or []:
+        counters.env_seconds += time.time() - t_env
+        if counters.frames >= int(cfg.collector.total_frames):
+            break
+        warmup = counters.frames < int(cfg.collector.warmup_steps)
+        m = batch_metrics(batch)
+        counters.add(m, warmup)
+        if warmup:
+            warmup_buffer.extend(add_next_actions(batch.clone()))
+            batch = relabel_warmup(batch)
+        replay.extend(batch)
+        fit_steps = schedule.due(int(counters.frames)) if ensemble is not None else 0
+        if fit_steps:
+            fit_q_ensemble(ensemble, warmup_buffer, steps=fit_steps, batch_size=int(cfg.selector.batch_size),
+                           gamma=float(cfg.loss.gamma), lr=float(cfg.selector.lr),
+                           target_noise=float(cfg.selector.target_noise), loss=str(cfg.selector.fit_loss),
+                           seed=int(cfg.seed))
+            ensemble.requires_grad_(False)
+        t_upd = time.time()
+        if counters.frames >= int(cfg.collector.learning_starts):
+            for _ in range(int(cfg.optim.updates_per_batch)):
+                losses = update(loss, optimizers, soft_update, replay.sample(), cfg.optim.max_grad_norm)
+                counters.updates += 1
+        counters.update_seconds += time.time() - t_upd
+        metrics = iteration_log(counters, m, losses, started)
+        if counters.frames >= next_eval:
+            next_eval = _next_multiple(counters.frames, int(cfg.eval.every_frames))
+            summary = evaluate_actor(actor, cfg, env_config, int(cfg.eval.episodes))
+            for k in EVAL_KEYS:
+                metrics[f"eval/{k}_mean"], metrics[f"eval/{k}_std"] = summary[k]["mean"], summary[k]["std"]
+        logger.log(int(counters.frames), metrics)
+        bar.update(int(m["steps"]))
+        bar.set_postfix(takeover=f"{metrics['train/takeover_rate']:.2f}",
+                        violations=int(counters.safety_violations), succ=f"{metrics['train/success_rate_total']:.2f}")
+        if checkpointer is not None and counters.frames >= next_ckpt:
+            next_ckpt = _next_multiple(counters.frames, int(cfg.checkpoint.every_frames))
+            checkpointer(int(counters.frames), objects, {
+                "counters": counters.state_dict(), "schedule": schedule.state_dict(),
+                "mentor": mentor.state_dict(), "transform_steps": transform.total_steps})
+        t_env = time.time()
+    bar.close()
+    if collector is not None:
+        collector.shutdown()
+    final = evaluate_actor(actor, cfg, env_config, int(cfg.eval.episodes))
+    final["training"] = counters.state_dict()
+    torch.save(actor.state_dict(), out_dir / "actor.pt")
+    return final

@@ -1,0 +1,290 @@
+"""Tests of the recipe configuration: defaults, YAML/dict sync, profiles, overrides, validation errors."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import pytest
+from omegaconf import OmegaConf
+
+from pe_rlhf.envs.config import DrivingConfig
+from pe_rlhf.training.config import (
+    DEFAULTS,
+    OPEN_GROUPS,
+    PROFILES,
+    RULES,
+    ConfigError,
+    default_config_path,
+    driving_config,
+    load_config,
+    method_name,
+    physics_config,
+    save_config,
+    to_container,
+    validate_config,
+)
+
+RECIPE_YAML = Path(__file__).resolve().parents[1] / "recipes" / "pe_rlhf" / "config.yaml"
+GROUPS = ("env", "mentor", "physics", "selector", "collector", "replay_buffer", "optim", "loss", "logger", "eval",
+          "checkpoint")
+
+
+def leaves(d: dict, prefix: str = "") -> dict:
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, dict) and v and f"{prefix}{k}" not in OPEN_GROUPS:
+            out.update(leaves(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+# --------------------------------------------------------------------------- defaults and files
+
+
+def test_defaults_load_and_validate_with_the_paper_values():
+    cfg = load_config()
+    validate_config(cfg)
+    assert set(GROUPS) <= set(cfg.keys())
+    assert cfg.profile == "paper"
+    assert (cfg.loss.gamma, cfg.loss.tau, cfg.optim.lr, cfg.replay_buffer.batch_size) == (0.99, 0.005, 1e-4, 1024)
+    assert (cfg.collector.learning_starts, cfg.collector.frames_per_batch, cfg.collector.warmup_steps) == (100, 100,
+                                                                                                           10000)
+    assert (cfg.loss.gap_coef, cfg.selector.epsilon_select, cfg.loss.psi, cfg.loss.intervention_weight) == (
+        10.0, 0.5, 1.0, 1.0)
+    assert driving_config(cfg) == DrivingConfig()
+    assert driving_config(cfg).split == "train"
+
+
+def test_recipe_yaml_equals_the_embedded_defaults():
+    assert default_config_path() == RECIPE_YAML
+    assert OmegaConf.to_container(OmegaConf.load(RECIPE_YAML)) == DEFAULTS
+
+
+def test_every_field_has_a_validation_rule():
+    assert set(leaves(DEFAULTS)) - set(OPEN_GROUPS) == set(RULES)
+
+
+def test_without_a_recipe_file_the_embedded_defaults_are_used(monkeypatch):
+    monkeypatch.setattr("pe_rlhf.training.config.default_config_path", lambda: None)
+    assert to_container(load_config()) == DEFAULTS
+
+
+def test_recipes_env_var_locates_the_file(tmp_path, monkeypatch):
+    (tmp_path / "pe_rlhf").mkdir()
+    (tmp_path / "pe_rlhf" / "config.yaml").write_text("optim:\n  lr: 0.002\n")
+    monkeypatch.setenv("PE_RLHF_RECIPES", str(tmp_path))
+    assert load_config().optim.lr == 0.002
+    monkeypatch.setenv("PE_RLHF_RECIPES", str(tmp_path / "nowhere"))
+    with pytest.raises(ConfigError, match="PE_RLHF_RECIPES"):
+        load_config()
+
+
+def test_partial_file_applies_over_defaults_and_unknown_file_key_fails(tmp_path):
+    path = tmp_path / "c.yaml"
+    path.write_text("mentor: {name: amateur}\nenv: {traffic_density: 0.3}\n")
+    cfg = load_config(path)
+    assert cfg.mentor.name == "amateur" and cfg.env.traffic_density == 0.3 and cfg.optim.lr == 1e-4
+    path.write_text("optim: {learning_rate: 0.1}\n")
+    with pytest.raises(ConfigError, match=r"optim\.learning_rate"):
+        load_config(path)
+    with pytest.raises(ConfigError, match="not found"):
+        load_config(tmp_path / "missing.yaml")
+
+
+def test_save_and_reload_round_trip(tmp_path):
+    cfg = load_config(overrides=["profile=cpu", "optim.updates_per_batch=50", "env.horizon=500"])
+    path = save_config(cfg, tmp_path / "run" / "config.yaml")
+    again = load_config(path, apply_profile=False)
+    assert to_container(again) == to_container(cfg)
+    assert isinstance(to_container(cfg)["loss"]["hidden"], list)
+
+
+# --------------------------------------------------------------------------- profiles and overrides
+
+
+def test_cpu_profile_changes_the_documented_fields():
+    paper, cpu = load_config(), load_config(overrides=["profile=cpu"])
+    assert cpu.profile == "cpu"
+    assert cpu.replay_buffer.batch_size == 256 < paper.replay_buffer.batch_size
+    assert cpu.optim.updates_per_batch == 100  # the paper's update-to-data ratio is kept
+    assert list(cpu.loss.hidden) == [256, 256]
+    assert (cpu.eval.episodes, cpu.eval.every_frames, cpu.eval.video) == (5, 10000, False)
+    assert cpu.collector.total_frames == 30000
+
+
+def test_smoke_profile_is_tiny():
+    cfg = load_config(overrides=["profile=smoke"])
+    assert cfg.collector.total_frames <= 500 and cfg.collector.warmup_steps <= 100
+    assert list(cfg.loss.hidden) == [32, 32] and list(cfg.selector.hidden) == [32, 32]
+    assert cfg.eval.episodes == 1 and not cfg.eval.video
+    assert driving_config(cfg).horizon == 100
+
+
+def test_profile_from_the_file_and_cli_override_on_top_of_profile(tmp_path):
+    path = tmp_path / "c.yaml"
+    path.write_text("profile: smoke\n")
+    assert load_config(path).collector.total_frames == PROFILES["smoke"]["collector"]["total_frames"]
+    cfg = load_config(path, ["replay_buffer.batch_size=64", "replay_buffer.size=5000"])
+    assert cfg.replay_buffer.batch_size == 64 and cfg.profile == "smoke"
+    assert load_config(path, ["profile=paper"]).collector.total_frames == 30000
+
+
+@pytest.mark.parametrize("name", sorted(PROFILES))
+def test_every_profile_validates_for_both_methods(name):
+    validate_config(load_config(overrides=[f"profile={name}"]))
+    load_config(overrides=[f"profile={name}", "selector.enabled=false", "physics.enabled=false"])
+
+
+def test_cli_overrides_apply():
+    cfg = load_config(overrides=["optim.lr=3e-4", "mentor.name=amateur", "loss.hidden=[128,128]",
+                                 "selector.variance_threshold=2.5", "env.traffic_density=0.2",
+                                 "mentor.kwargs.action_noise=0.2", "logger.out_dir=runs/x"])
+    assert cfg.optim.lr == pytest.approx(3e-4)
+    assert cfg.mentor.name == "amateur" and cfg.mentor.kwargs.action_noise == 0.2
+    assert list(cfg.loss.hidden) == [128, 128] and cfg.selector.variance_threshold == 2.5
+    assert driving_config(cfg).traffic_density == 0.2
+    assert driving_config(cfg, split="test").split == "test"
+    assert cfg.logger.out_dir == "runs/x"
+
+
+@pytest.mark.parametrize("override, named", [("optim.lrr=1", "optim.lrr"), ("optimizer.lr=1", "optimizer"),
+                                             ("loss.gamma.x=1", "loss.gamma.x")])
+def test_unknown_override_key_fails_naming_it(override, named):
+    with pytest.raises(ConfigError, match=named.replace(".", r"\.")):
+        load_config(overrides=[override])
+
+
+def test_malformed_override_and_unknown_profile_fail():
+    with pytest.raises(ConfigError, match="key=value"):
+        load_config(overrides=["optim.lr"])
+    with pytest.raises(ConfigError, match="profile='gpu'"):
+        load_config(overrides=["profile=gpu"])
+
+
+# --------------------------------------------------------------------------- validation
+
+
+INVALID = [
+    ("seed", "-1"),
+    ("env.traffic_density", "-1"),
+    ("env.lanes", "7"),
+    ("env.trafic_density", "0.5"),
+    ("mentor.name", "expert"),
+    ("mentor.seed", "1.5"),
+    ("mentor.kwargs.skill", "3"),
+    ("physics.use_idm", "maybe"),
+    ("selector.epsilon_select", "nan"),
+    ("selector.variance_threshold", "-0.5"),
+    ("selector.num_members", "0"),
+    ("selector.hidden", "[256,-3]"),
+    ("selector.fit_loss", "median"),
+    ("selector.lr", "0"),
+    ("collector.total_frames", "0"),
+    ("collector.frames_per_batch", "40000"),
+    ("collector.warmup_steps", "50000"),
+    ("collector.learning_starts", "-5"),
+    ("collector.backend", "threads"),
+    ("collector.num_workers", "4"),
+    ("replay_buffer.size", "0"),
+    ("replay_buffer.batch_size", "200000"),
+    ("optim.lr", "-0.001"),
+    ("optim.updates_per_batch", "0"),
+    ("optim.max_grad_norm", "0"),
+    ("loss.gamma", "1.5"),
+    ("loss.tau", "0"),
+    ("loss.tau", "1.2"),
+    ("loss.gap_coef", "-1"),
+    ("loss.intervention_critic_action", "mentor"),
+    ("loss.target_entropy", "high"),
+    ("loss.alpha_init", "0"),
+    ("loss.hidden", "[]"),
+    ("loss.cosine_cost", "2"),
+    ("logger.wandb_mode", "cloud"),
+    ("logger.log_every", "0"),
+    ("eval.episodes", "0"),
+    ("eval.split", "val"),
+    ("checkpoint.keep", "0"),
+    ("profile", "gpu"),
+]
+
+
+@pytest.mark.parametrize("field, value", INVALID)
+def test_invalid_value_names_field_and_value(field, value):
+    with pytest.raises(ConfigError) as info:
+        load_config(overrides=[f"{field}={value}"])
+    message = str(info.value)
+    assert field in message, message
+    assert value.strip("[]").split(",")[-1] in message, message
+    assert info.value.field is None or info.value.field == field
+
+
+def test_invalid_values_cover_every_group():
+    assert {f.split(".")[0] for f, _ in INVALID} >= set(GROUPS)
+
+
+def test_non_finite_numbers_are_refused():
+    with pytest.raises(ConfigError, match=r"selector\.epsilon_select=nan is invalid: must be a finite number"):
+        load_config(overrides=["selector.epsilon_select=.nan"])
+    with pytest.raises(ConfigError, match=r"optim\.lr=inf is invalid: must be a finite number > 0"):
+        load_config(overrides=["optim.lr=.inf"])
+
+
+def test_env_traffic_density_error_names_the_env_field():
+    with pytest.raises(ConfigError, match=r"env\.traffic_density=-1 is invalid: must be in \[0, 5\]"):
+        load_config(overrides=["env.traffic_density=-1"])
+
+
+def test_ray_backend_is_refused_with_the_reason_when_not_installed():
+    if importlib.util.find_spec("ray") is not None:
+        load_config(overrides=["collector.backend=ray", "collector.num_workers=2"])
+    else:
+        with pytest.raises(ConfigError, match="ray package"):
+            load_config(overrides=["collector.backend=ray", "collector.num_workers=2"])
+
+
+def test_multi_process_backends_and_custom_mentor_paths_are_accepted():
+    cfg = load_config(overrides=["collector.backend=multisync", "collector.num_workers=4",
+                                 "mentor.name=my_pkg.mentors:CarefulMentor", "mentor.kwargs.anything=1"])
+    assert cfg.collector.num_workers == 4
+    with pytest.raises(ConfigError, match="mentor.name='my_pkg.mentors'"):
+        load_config(overrides=["mentor.name=my_pkg.mentors"])
+    with pytest.raises(ConfigError, match="collector.backend='multisync'"):
+        load_config(overrides=["mentor.name=human", "collector.backend=multisync", "collector.num_workers=2"])
+
+
+def test_validate_rejects_hand_built_configs_with_unknown_groups():
+    cfg = load_config(validate=False)
+    cfg = OmegaConf.merge(OmegaConf.create(to_container(cfg)), {"extra": {"x": 1}})
+    with pytest.raises(ConfigError, match=r"extra\.x"):
+        validate_config(cfg)
+
+
+# --------------------------------------------------------------------------- method
+
+
+def test_method_names():
+    assert method_name(load_config()) == "PE-RLHF"
+    haco = load_config(overrides=["selector.enabled=false", "physics.enabled=false"])
+    assert method_name(haco) == "HACO"
+    assert method_name(load_config(overrides=["selector.num_members=1"])) == "PE-RLHF"  # w/o ensemble ablation
+
+
+def test_selector_without_physics_is_an_error():
+    with pytest.raises(ConfigError, match=r"selector\.enabled=True .*physics\.enabled"):
+        load_config(overrides=["physics.enabled=false"])
+    with pytest.raises(ConfigError, match=r"physics\.enabled=True .*selector\.enabled"):
+        load_config(overrides=["selector.enabled=false"])
+
+
+def test_selector_needs_warmup():
+    with pytest.raises(ConfigError, match="collector.warmup_steps=0"):
+        load_config(overrides=["collector.warmup_steps=0"])
+    load_config(overrides=["collector.warmup_steps=0", "selector.enabled=false", "physics.enabled=false"])
+
+
+def test_physics_config_follows_the_switches():
+    cfg = load_config(overrides=["physics.use_mobil=false", "physics.see_obstacles=true"])
+    phy = physics_config(cfg)
+    assert (phy.use_idm, phy.use_mobil, phy.see_obstacles) == (True, False, True)

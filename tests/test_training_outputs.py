@@ -1,0 +1,209 @@
+"""Training outputs: the metrics CSV (crash-safe, resumable), wandb offline, plots, GIFs."""
+
+from __future__ import annotations
+
+import csv
+import importlib.util
+import json
+import math
+import warnings
+
+import numpy as np
+import pytest
+
+from pe_rlhf.training.metrics_logger import MetricsLogger, flatten_eval_summary, read_metrics_csv
+from pe_rlhf.training.plots import TESTING_PANEL, plot_learning_curves
+
+
+def _read(path):
+    with open(path, newline="") as f:
+        reader = csv.DictReader(f)
+        return reader.fieldnames, list(reader)
+
+
+# -- CSV -----------------------------------------------------------------------------------------
+
+
+def test_csv_rows_and_new_columns_readable_while_open(tmp_path):
+    path = tmp_path / "metrics.csv"
+    with MetricsLogger(tmp_path) as logger:
+        logger.log(100, {"train/takeover_rate": 0.5, "loss/qvalue": 1.25})
+        header, rows = _read(path)  # read while the logger still holds the file
+        assert header == ["step", "train/takeover_rate", "loss/qvalue"]
+        assert rows == [{"step": "100", "train/takeover_rate": "0.5", "loss/qvalue": "1.25"}]
+
+        logger.log(200, {"train/takeover_rate": np.float32(0.25), "eval/success_rate_mean": 1})
+        header, rows = _read(path)
+        assert header == ["step", "train/takeover_rate", "loss/qvalue", "eval/success_rate_mean"]
+        assert [r["step"] for r in rows] == ["100", "200"]
+        assert rows[0]["eval/success_rate_mean"] == "" and rows[1]["loss/qvalue"] == ""
+        assert rows[1]["eval/success_rate_mean"] == "1"
+
+        logger.log(300, {"loss/qvalue": 0.75})
+        _, rows = _read(path)
+        assert len(rows) == 3 and rows[2]["loss/qvalue"] == "0.75"
+        assert logger.last_step == 300
+    assert not list(tmp_path.glob(".metrics-*"))  # no temporary files left behind
+    columns, parsed = read_metrics_csv(path)
+    assert columns[0] == "step" and parsed[1] == {"step": 200.0, "train/takeover_rate": 0.25,
+                                                  "eval/success_rate_mean": 1.0}
+
+
+def test_declare_and_bad_values(tmp_path):
+    with MetricsLogger(tmp_path) as logger:
+        logger.declare(["a", "b"])
+        assert _read(tmp_path / "metrics.csv")[0] == ["step", "a", "b"]
+        with pytest.raises(TypeError, match="'a'"):
+            logger.log(1, {"a": "text"})
+        with pytest.raises(ValueError, match="reserved"):
+            logger.log(1, {"step": 3})
+    with pytest.raises(RuntimeError, match="closed"):
+        logger.log(2, {"a": 1.0})
+    logger.close()  # idempotent
+
+
+def test_non_finite_values_blank_and_warned_once(tmp_path):
+    with MetricsLogger(tmp_path) as logger:
+        with pytest.warns(RuntimeWarning, match="'loss/actor'"):
+            logger.log(1, {"loss/actor": float("nan"), "loss/alpha": 0.1})
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")  # the second NaN of the same key is silent
+            logger.log(2, {"loss/actor": float("inf"), "loss/alpha": 0.2})
+        with pytest.warns(RuntimeWarning, match="'loss/alpha'"):
+            logger.log(3, {"loss/actor": 1.0, "loss/alpha": -math.inf})
+    _, rows = _read(tmp_path / "metrics.csv")
+    assert [r["loss/actor"] for r in rows] == ["", "", "1.0"]
+    assert [r["loss/alpha"] for r in rows] == ["0.1", "0.2", ""]
+
+
+def test_resume_drops_rows_from_the_resume_step(tmp_path):
+    with MetricsLogger(tmp_path) as logger:
+        for step in (100, 200, 300, 400):
+            logger.log(step, {"train/takeover_rate": step / 1000})
+        logger.log(300, {"eval/episodic_return_mean": 5.0})
+    # the checkpoint was saved at step 300: rows at 300 and later are replayed by the resumed run
+    with MetricsLogger(tmp_path, resume=True) as logger:
+        assert logger.columns == ["step", "train/takeover_rate", "eval/episodic_return_mean"]
+        assert logger.truncate_after(300) == 3
+        assert logger.last_step == 200
+        _, rows = _read(tmp_path / "metrics.csv")
+        assert [r["step"] for r in rows] == ["100", "200"]
+        logger.log(300, {"train/takeover_rate": 0.9})
+    _, rows = _read(tmp_path / "metrics.csv")
+    assert [r["step"] for r in rows] == ["100", "200", "300"]
+    assert rows[-1]["train/takeover_rate"] == "0.9"
+    # without resume the old file is replaced
+    with MetricsLogger(tmp_path) as logger:
+        logger.log(1, {"x": 1.0})
+    assert [r["step"] for r in _read(tmp_path / "metrics.csv")[1]] == ["1"]
+
+
+def test_flatten_eval_summary():
+    summary = {"episodic_return": {"mean": 3.0, "std": 1.0}, "episodes": 5, "seeds": [1, 2],
+               "failure_breakdown": {"timeout": 1}}
+    assert flatten_eval_summary(summary) == {"eval/episodic_return_mean": 3.0,
+                                             "eval/episodic_return_std": 1.0}
+
+
+# -- wandb / TensorBoard -------------------------------------------------------------------------
+
+
+def test_wandb_offline_run_directory(tmp_path, monkeypatch):
+    try:
+        import wandb  # noqa: F401
+    except Exception as err:  # noqa: BLE001
+        pytest.skip(f"wandb cannot be imported: {err}")
+    monkeypatch.setenv("WANDB_MODE", "offline")
+    monkeypatch.setenv("WANDB_SILENT", "true")
+    monkeypatch.setenv("WANDB_API_KEY", "")  # no credentials, and a closed local port as the server
+    monkeypatch.setenv("WANDB_BASE_URL", "http://127.0.0.1:9")
+    with MetricsLogger(tmp_path, wandb=True, wandb_mode="offline", config={"lr": 1e-4}) as logger:
+        with pytest.warns(RuntimeWarning, match="loss/qvalue"):
+            logger.log(1, {"train/takeover_rate": 0.5, "loss/qvalue": float("nan")})
+        logger.log(2, {"train/takeover_rate": 0.25})
+        assert logger.wandb_run is not None and logger.wandb_run.offline
+    runs = list((tmp_path / "wandb").glob("offline-run-*"))
+    assert len(runs) == 1 and list(runs[0].glob("run-*.wandb"))
+    assert (tmp_path / "wandb_run_id").read_text().strip() == runs[0].name.rsplit("-", 1)[-1]
+    assert len(_read(tmp_path / "metrics.csv")[1]) == 2
+
+
+@pytest.mark.skipif(importlib.util.find_spec("tensorboard") is not None, reason="tensorboard is installed")
+def test_tensorboard_missing_is_a_clear_error(tmp_path):
+    with pytest.raises(ImportError, match="pip install tensorboard"):
+        MetricsLogger(tmp_path / "tb", tensorboard=True)
+    assert not (tmp_path / "tb" / "metrics.csv").exists()  # failed before touching anything
+
+
+# -- plots ---------------------------------------------------------------------------------------
+
+
+def _synthetic_csv(out_dir, with_losses=True, with_std=True):
+    rng = np.random.default_rng(0)
+    with MetricsLogger(out_dir) as logger:
+        total = 0.0
+        for i, step in enumerate(range(500, 10_001, 500)):
+            total += rng.poisson(0.5)
+            row = {"train/safety_violations_total": total, "train/takeover_rate": 0.5 * 0.9**i,
+                   "train/takeover_data_usage": 0.3 + 0.1 * 0.9**i, "train/value_takeover_rate": 0.2,
+                   "train/intervention_cost": rng.uniform(0, 1)}
+            if with_losses:
+                row.update({"loss/qvalue": 10 * 0.8**i, "loss/actor": -5 + i * 0.1, "loss/alpha": -0.01})
+            logger.log(step, row)
+            if step % 2000 == 0:
+                ev = {f"eval/{m}_mean": rng.uniform(0, 1) * (i + 1) for m, _ in TESTING_PANEL}
+                ev["eval/success_rate_mean"] = i / 20
+                if with_std:
+                    ev.update({f"eval/{m}_std": 0.1 * ev[f"eval/{m}_mean"] for m, _ in TESTING_PANEL})
+                logger.log(step, ev)
+    return out_dir / "metrics.csv"
+
+
+def test_plots_written_with_baseline(tmp_path):
+    csv_path = _synthetic_csv(tmp_path)
+    baseline = {"policy": "idm-mobil", "episodic_return": {"mean": 2.0, "std": 0.5},
+                "success_rate": {"mean": 0.3, "std": 0.4}}
+    json_path = tmp_path / "idm.json"
+    json_path.write_text(json.dumps(baseline))
+    for b in (baseline, json_path):
+        written = plot_learning_curves(csv_path, tmp_path / "plots", baseline=b)
+        assert set(written) == {"training", "testing"}
+        for path in written.values():
+            assert path.exists() and path.stat().st_size > 5_000
+    assert not list((tmp_path / "plots").glob(".*"))
+
+
+def test_plots_with_missing_columns(tmp_path):
+    csv_path = tmp_path / "metrics.csv"
+    with MetricsLogger(tmp_path) as logger:
+        logger.log(100, {"train/takeover_rate": 0.5})
+        logger.log(200, {"train/takeover_rate": 0.4, "eval/success_rate_mean": 0.5})  # no _std
+        with pytest.warns(RuntimeWarning):
+            logger.log(300, {"eval/success_rate_mean": float("nan")})
+    written = plot_learning_curves(csv_path, tmp_path / "p")
+    assert set(written) == {"training", "testing"}
+    assert all(p.stat().st_size > 5_000 for p in written.values())
+    # only training columns: no testing panel
+    only_train = tmp_path / "t"
+    with MetricsLogger(only_train) as logger:
+        logger.log(1, {"loss/qvalue": 1.0})
+    assert set(plot_learning_curves(only_train / "metrics.csv", only_train)) == {"training"}
+
+
+# -- video ---------------------------------------------------------------------------------------
+
+
+def test_episode_gif_idm_mobil(tmp_path):
+    from PIL import Image
+
+    from pe_rlhf.evaluation import make_policy
+    from pe_rlhf.training.video import record_episode_gif
+
+    path = tmp_path / "gifs" / "idm.gif"
+    info = record_episode_gif(make_policy("idm-mobil", 0), None, 1000, path, max_steps=20)
+    assert path.exists() and info["path"] == str(path)
+    assert 1 <= info["steps"] <= 20 and info["frames"] == info["steps"] + 1
+    assert info["scene_seed"] == 1000 and "success" in info
+    with Image.open(path) as gif:
+        assert gif.n_frames > 1
+        assert gif.size == (400, 225)  # the 800x450 render at scale 0.5
