@@ -37,3 +37,17 @@ def test_smoke_run_writes_every_output(tmp_path):
     saved = json.load(open(tmp_path / "final_eval.json"))
     assert saved["episodes"] == 1 and 0.0 <= saved["success_rate"]["mean"] <= 1.0
     assert final["training"]["frames"] == 300
+
+
+def test_resume_continues_without_gap_or_repeat(tmp_path):
+    recipe = _load_recipe()
+    recipe.main(["profile=smoke", "collector.total_frames=200", "checkpoint.every_frames=100", "checkpoint.keep=2",
+                 "--out", str(tmp_path)])
+    assert (tmp_path / "checkpoints" / "ckpt_000000200").exists()
+    final = recipe.main(["--resume", str(tmp_path), "collector.total_frames=300"])
+    rows = list(csv.DictReader(open(tmp_path / "metrics.csv")))
+    steps = [int(float(r["step"])) for r in rows]
+    assert steps == [50, 100, 150, 200, 250, 300]  # the curve continues: no gap, no repeated step
+    assert final["training"]["frames"] == 300
+    # warm-up (100 frames) happened once: after resuming, the takeover bookkeeping counts online frames only
+    assert final["training"]["online_frames"] == 200

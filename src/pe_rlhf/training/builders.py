@@ -66,9 +66,10 @@ def build_actor(cfg):
     return make_actor(OBS_DIM, hidden=tuple(cfg.loss.hidden))
 
 
-def build_collector(cfg, env, actor) -> Collector:
-    return Collector(env, actor, frames_per_batch=int(cfg.collector.frames_per_batch),
-                     total_frames=int(cfg.collector.total_frames))
+def build_collector(cfg, env, actor, total_frames: int | None = None) -> Collector:
+    """A single-process collector over the env (the transform drives this process's simulator)."""
+    frames = int(cfg.collector.total_frames) if total_frames is None else int(total_frames)
+    return Collector(env, actor, frames_per_batch=int(cfg.collector.frames_per_batch), total_frames=frames)
 
 
 def build_replay_buffer(cfg) -> TensorDictReplayBuffer:
