@@ -218,3 +218,27 @@ def test_pause_blocks_until_unpaused(env):
     pygame.event.post(pygame.event.Event(pygame.QUIT))  # quitting ends a pause too
     mentor.decide(env, np.zeros(2, dtype=np.float32))
     assert mentor.quit_requested
+
+
+def test_intervention_transform_tells_the_window_who_drives():
+    """In PE-RLHF the human's takeover may execute physics' action; the window must say so."""
+    from pe_rlhf.envs.torchrl_env import make_env
+    from pe_rlhf.modules import QEnsemble
+    from pe_rlhf.physics import IDMMobilPolicy
+    from pe_rlhf.transforms import HybridActionSelector, InterventionTransform
+
+    for epsilon, expected in ((-1e9, "HUMAN"), (1e9, "PHYSICS")):
+        mentor = HumanMentor(fps=0)
+        env = make_env({"split": "test"})
+        selector = HybridActionSelector(QEnsemble(250, num_members=2, hidden=(8, 8)), epsilon_select=epsilon)
+        env.append_transform(InterventionTransform(mentor, selector, IDMMobilPolicy()))
+        td = env.reset(scene_seed=1000)
+        key(pygame.K_UP)  # the person holds the accelerator: a takeover
+        td["action"] = env.action_spec.zero()
+        td = env.step(td)
+        assert td["next", "intervention"].item()
+        assert mentor.control == expected
+        assert td["next", "mentor_selected"].item() == (expected == "HUMAN")
+        key(pygame.K_UP, down=False)
+        mentor.close()
+        env.close()

@@ -104,6 +104,9 @@ class InterventionTransform(Transform):
                 hybrid, chosen = self.selector.select(observation, torch.as_tensor(mentor_action),
                                                       torch.as_tensor(physics_action))
                 executed, mentor_selected = hybrid.numpy().astype(np.float32), bool(chosen.item())
+        show = getattr(self.mentor, "show_control", None)
+        if show is not None and takeover and not warmup:  # a person's window shows who drives now
+            show("HUMAN" if mentor_selected else "PHYSICS")
         start = bool(takeover) and not self._in_takeover
         return {
             "behavior_action": executed,
