@@ -27,6 +27,7 @@ from torchrl.objectives import SACLoss, SoftUpdate
 
 from pe_rlhf.modules import make_actor, make_qvalue
 from pe_rlhf.objectives import PERLHFLoss
+from pe_rlhf.objectives.perlhf import make_transitions
 
 ACTION_DIM = 2
 RATIO_TARGET = 1.6
@@ -39,25 +40,9 @@ def make_batch(batch: int, obs_dim: int, intervention_rate: float, seed: int = 0
     intervention = torch.rand(batch, 1, generator=g) < intervention_rate
     behavior = torch.where(intervention, torch.rand(batch, ACTION_DIM, generator=g) * 2 - 1, agent)
     start = intervention & (torch.rand(batch, 1, generator=g) < 0.3)
-    cost = 1 - torch.nn.functional.cosine_similarity(agent, behavior, dim=-1).unsqueeze(-1)
     terminated = torch.rand(batch, 1, generator=g) < 0.01
-    return TensorDict(
-        {
-            "observation": torch.rand(batch, obs_dim, generator=g),
-            "action": agent,
-            "next": {
-                "observation": torch.rand(batch, obs_dim, generator=g),
-                "behavior_action": behavior,
-                "intervention": intervention,
-                "intervention_start": start,
-                "intervention_cost": cost * start,
-                "reward": torch.randn(batch, 1, generator=g),
-                "done": terminated.clone(),
-                "terminated": terminated,
-            },
-        },
-        [batch],
-    )
+    return make_transitions(torch.rand(batch, obs_dim, generator=g), torch.rand(batch, obs_dim, generator=g),
+                            agent, behavior, intervention, start, terminated, torch.randn(batch, 1, generator=g))
 
 
 class Updater:

@@ -23,7 +23,7 @@ from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.objectives import SoftUpdate
 
 from pe_rlhf.modules.networks import make_actor, make_qvalue
-from pe_rlhf.objectives.perlhf import PERLHFLoss
+from pe_rlhf.objectives.perlhf import PERLHFLoss, make_transitions
 from pe_rlhf.training import checkpoint as ck
 from pe_rlhf.training.checkpoint import (CheckpointError, capture_rng, find_checkpoint, list_checkpoints,
                                          load_checkpoint, restore_rng, save_checkpoint)
@@ -43,22 +43,9 @@ def transitions(n: int, seed: int) -> TensorDict:
     intervention = torch.rand(n, 1, generator=g) < 0.4
     agent = torch.rand(n, ACTION_DIM, generator=g) * 2 - 1
     behavior = torch.where(intervention, torch.rand(n, ACTION_DIM, generator=g) * 2 - 1, agent)
-    cost = (1 - torch.nn.functional.cosine_similarity(agent, behavior, dim=-1)).unsqueeze(-1)
     terminated = torch.rand(n, 1, generator=g) < 0.1
-    return TensorDict({
-        "observation": torch.randn(n, OBS_DIM, generator=g),
-        "action": agent,
-        "next": {
-            "observation": torch.randn(n, OBS_DIM, generator=g),
-            "behavior_action": behavior,
-            "intervention": intervention,
-            "intervention_start": intervention.clone(),
-            "intervention_cost": cost * intervention,
-            "reward": torch.zeros(n, 1),
-            "done": terminated.clone(),
-            "terminated": terminated,
-        },
-    }, [n])
+    return make_transitions(torch.randn(n, OBS_DIM, generator=g), torch.randn(n, OBS_DIM, generator=g),
+                            agent, behavior, intervention, intervention.clone(), terminated)
 
 
 class Run:

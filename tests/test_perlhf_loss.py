@@ -20,6 +20,7 @@ from torchrl.objectives import SoftUpdate
 
 from pe_rlhf.modules import make_actor, make_qvalue
 from pe_rlhf.objectives import PERLHFLoss
+from pe_rlhf.objectives.perlhf import make_transitions
 
 pytestmark = pytest.mark.filterwarnings("ignore:No target network updater")
 
@@ -88,25 +89,9 @@ def make_batch(batch: int = BATCH, intervention=0.5, start=None, terminated=Fals
     start = intervention if start is None else flags(start) & intervention
     agent = torch.rand(batch, ACTION_DIM, generator=g) * 2 - 1
     behavior = torch.where(intervention, torch.rand(batch, ACTION_DIM, generator=g) * 2 - 1, agent)
-    cost = (1 - torch.nn.functional.cosine_similarity(agent, behavior, dim=-1)).unsqueeze(-1)
     terminated = flags(terminated)
-    td = TensorDict(
-        {
-            "observation": torch.randn(batch, OBS_DIM, generator=g),
-            "action": agent,
-            "next": {
-                "observation": torch.randn(batch, OBS_DIM, generator=g),
-                "behavior_action": behavior,
-                "intervention": intervention,
-                "intervention_start": start,
-                "intervention_cost": cost * start,
-                "reward": torch.randn(batch, 1, generator=g),
-                "done": terminated.clone(),
-                "terminated": terminated,
-            },
-        },
-        [batch],
-    )
+    td = make_transitions(torch.randn(batch, OBS_DIM, generator=g), torch.randn(batch, OBS_DIM, generator=g),
+                          agent, behavior, intervention, start, terminated, torch.randn(batch, 1, generator=g))
     return td.reshape(*shape) if shape is not None else td
 
 

@@ -250,3 +250,39 @@ class PERLHFLoss(LossModule):
             },
             batch_size=[],
         )
+
+
+def make_transitions(
+    observation: torch.Tensor,
+    next_observation: torch.Tensor,
+    agent_action: torch.Tensor,
+    behavior_action: torch.Tensor,
+    intervention: torch.Tensor,
+    intervention_start: torch.Tensor,
+    terminated: torch.Tensor,
+    reward: torch.Tensor | None = None,
+) -> TensorDict:
+    """A batch in the layout :class:`PERLHFLoss` reads (``(B, ...)`` tensors; flags ``(B, 1)`` bool).
+
+    ``intervention_cost`` is computed as ``1 - cos(a_AV, a_exec)`` on start rows (0 elsewhere), as the
+    intervention transform does; ``done`` copies ``terminated``; ``reward`` defaults to zeros.
+    """
+    batch = observation.shape[0]
+    cost = (1 - torch.nn.functional.cosine_similarity(agent_action, behavior_action, dim=-1)).unsqueeze(-1)
+    return TensorDict(
+        {
+            "observation": observation,
+            "action": agent_action,
+            "next": {
+                "observation": next_observation,
+                "behavior_action": behavior_action,
+                "intervention": intervention,
+                "intervention_start": intervention_start,
+                "intervention_cost": cost * intervention_start,
+                "reward": torch.zeros(batch, 1) if reward is None else reward,
+                "done": terminated.clone(),
+                "terminated": terminated,
+            },
+        },
+        [batch],
+    )
