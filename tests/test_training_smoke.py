@@ -37,6 +37,14 @@ def test_smoke_run_writes_every_output(tmp_path):
     saved = json.load(open(tmp_path / "final_eval.json"))
     assert saved["episodes"] == 1 and 0.0 <= saved["success_rate"]["mean"] <= 1.0
     assert final["training"]["frames"] == 300
+    # the trained agent evaluates from its run folder, reproducing the recipe's final evaluation
+    from pe_rlhf.cli import main as cli
+
+    assert cli(["evaluate", "--checkpoint", str(tmp_path), "--seeds", "1000", "--no-progress",
+                "--config-override", "horizon=100", "--config-override", "min_blocks=2",
+                "--config-override", "max_blocks=2", "--json", str(tmp_path / "again.json")]) == 0
+    again = json.load(open(tmp_path / "again.json"))
+    assert again["episodic_return"]["mean"] == saved["episodic_return"]["mean"]
 
 
 def test_resume_continues_without_gap_or_repeat(tmp_path):

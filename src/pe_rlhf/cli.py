@@ -74,10 +74,16 @@ def run_evaluate(args: argparse.Namespace, parser: argparse.ArgumentParser) -> i
     try:
         config = parse_config_overrides(args.config_override)
         seeds = _seeds(args)
-        policy = make_policy(args.policy, args.seed)
-    except ValueError as e:
+        if args.checkpoint:
+            from pe_rlhf.evaluation import TorchRLPolicyAdapter
+            from pe_rlhf.training.trained_policy import load_actor
+
+            policy, name = TorchRLPolicyAdapter(load_actor(args.checkpoint)), f"agent:{args.checkpoint}"
+        else:
+            policy, name = make_policy(args.policy, args.seed), args.policy
+    except (ValueError, FileNotFoundError) as e:
         parser.error(str(e))
-    summary = evaluate(policy, seeds, config, progress=not args.no_progress, name=args.policy).to_dict()
+    summary = evaluate(policy, seeds, config, progress=not args.no_progress, name=name).to_dict()
     print_summary(summary)
     if args.json:
         print(f"wrote {write_json(args.json, summary)}")
@@ -90,6 +96,8 @@ def add_evaluate_parser(subparsers: argparse._SubParsersAction) -> argparse.Argu
                               description="Evaluate a registered policy, one episode per scene seed.")
     p.add_argument("--policy", default="idm-mobil", help="registered policy name (idm-mobil, idm-mobil-oracle, "
                    "random, ...)")
+    p.add_argument("--checkpoint", metavar="RUN_DIR", help="evaluate the agent trained in this run folder "
+                   "(its actor.pt, or its newest checkpoint); replaces --policy")
     p.add_argument("--split", default="test", choices=("train", "test"), help="scene split (default: test)")
     p.add_argument("--seeds", help="scene seeds 'A-B' or 'a,b,c'; replaces --split")
     p.add_argument("--episodes", type=int, help="evaluate the first N seeds (default: all)")
