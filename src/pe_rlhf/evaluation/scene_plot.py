@@ -11,8 +11,9 @@ import numpy as np  # noqa: E402
 
 def _outline(obj) -> np.ndarray:
     c, s = np.cos(obj.heading), np.sin(obj.heading)
-    l, w = obj.LENGTH / 2, obj.WIDTH / 2
-    corners = np.array([[l, w], [l, -w], [-l, -w], [-l, w], [l, w]])
+    half_len, half_wid = obj.LENGTH / 2, obj.WIDTH / 2
+    corners = np.array([[half_len, half_wid], [half_len, -half_wid], [-half_len, -half_wid],
+                        [-half_len, half_wid], [half_len, half_wid]])
     return obj.position + corners @ np.array([[c, s], [-s, c]])
 
 
