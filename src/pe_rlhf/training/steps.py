@@ -44,7 +44,7 @@ def update(loss: PERLHFLoss, optimizers: dict, soft_update, sample: TensorDictBa
             torch.nn.utils.clip_grad_norm_(params, max_grad_norm)
         opt.step()
     soft_update.step()
-    return {k: float(v) for k, v in out.items()}
+    return {k: float(v.detach()) for k, v in out.items()}
 
 
 def batch_metrics(batch: TensorDictBase) -> dict[str, float]:

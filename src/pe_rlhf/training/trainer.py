@@ -159,6 +159,7 @@ def _train(cfg, out_dir, logger, checkpoint_dir, resume: bool, update_threads: i
         if warmup:
             warmup_buffer.extend(add_next_actions(batch.clone()))
             batch = relabel_warmup(batch)
+            m["intervention_cost"] = 0.0  # forced mentor driving is no takeover: nothing is charged
         replay.extend(batch)
         fit_steps = schedule.due(int(counters.frames)) if ensemble is not None else 0
         if fit_steps:
