@@ -28,12 +28,7 @@ GAMMA = 0.9
 EPISODES = 50
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread_module")  # tiny nets: one thread
 
 
 def reset(n, g):

@@ -447,15 +447,6 @@ def test_soft_update_moves_targets_towards_online_params():
 # --------------------------------------------------------------------------- learning
 
 
-@pytest.fixture
-def one_thread():
-    """Small nets: one thread is faster, and immune to oversubscription on a loaded machine."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 def test_actor_learns_to_steer_to_the_mentors_side(one_thread):
     """The mentor corrects every left-steering proposal to (+0.7, the agent's throttle).
 

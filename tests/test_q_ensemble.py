@@ -15,13 +15,7 @@ from pe_rlhf.modules.q_ensemble import QEnsemble, load_q_ensemble, save_q_ensemb
 OBS, ACT, K = 3, 2, 5
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    # Tiny networks: a single intra-op thread is faster and immune to oversubscribed CPUs.
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread_module")  # tiny nets: one thread
 
 
 # --- the estimator -------------------------------------------------------------------------------

@@ -15,7 +15,6 @@ Phases, top to bottom in :func:`train`:
 
 from __future__ import annotations
 
-import contextlib
 import time
 from pathlib import Path
 
@@ -24,6 +23,7 @@ from tqdm import tqdm
 
 from pe_rlhf.evaluation import TorchRLPolicyAdapter, evaluate
 from pe_rlhf.modules import EnsembleSchedule, add_next_actions, fit_q_ensemble
+from pe_rlhf.threads import torch_threads
 from pe_rlhf.training import builders
 from pe_rlhf.training.steps import batch_metrics, relabel_warmup, update
 
@@ -55,19 +55,6 @@ class Counters:
 
     def load_state_dict(self, state: dict) -> None:
         vars(self).update(state)
-
-
-@contextlib.contextmanager
-def torch_threads(n: int):
-    """Run a block with ``n`` intra-op threads. Acting runs single-threaded: its matmuls are tiny, and
-    on two busy cores a second thread made each selector call ~10x slower (measured: 35 vs 284
-    env steps/s); updates at batch 1024 do gain from all threads."""
-    previous = torch.get_num_threads()
-    torch.set_num_threads(n)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(previous)
 
 
 def _next_multiple(frames: float, every: int) -> float:
