@@ -36,6 +36,7 @@ FLAG_KEYS = ("intervention", "intervention_start", "mentor_selected")
 def _env(mentor=None, config=None, **kwargs):
     env = make_env({**FAST_CONFIG, **(config or {})})
     env.append_transform(InterventionTransform(mentor or DriverMentor(), **kwargs))
+    env.set_seed(0)  # scenes drawn at automatic resets come from the env's RNG: fix them
     return env
 
 
