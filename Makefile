@@ -17,9 +17,10 @@ $(STAMP): pyproject.toml
 
 venv: $(STAMP)
 
-# Main job on the embedded default (until the training recipe lands: IDM-MOBIL on the test split).
+# Main job on the embedded default: PE-RLHF with the simulated professional mentor on a ~10-minute
+# budget (profile=quick), then the test-split table against IDM-MOBIL. Outputs in runs/pe-rlhf-<time>/.
 run: $(STAMP)
-	SDL_VIDEODRIVER=dummy $(VENV)/bin/pe-rlhf evaluate --policy idm-mobil --split test --episodes 50 --json runs/idm_mobil_test.json
+	SDL_VIDEODRIVER=dummy $(PY) recipes/pe_rlhf/train.py profile=quick --compare idm-mobil
 
 test: $(STAMP)
 	SDL_VIDEODRIVER=dummy $(PY) -m pytest -q

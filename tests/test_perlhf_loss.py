@@ -226,6 +226,26 @@ def test_gradient_step_on_the_gap_separates_mentor_and_agent_values():
     assert (after["q_behavior"] - after["q_agent"]) > (before["q_behavior"] - before["q_agent"])
 
 
+def test_hinge_gap_stops_once_the_agent_action_is_valued_a_margin_below():
+    # Agent steers left (-0.5), mentor right (+0.7): Q(s, a_exec) = 0.7 w, Q(s, a_AV) = 0.
+    batch = make_batch(intervention=1.0)
+    batch["action"][:, 0] = -0.5
+    batch["next", "behavior_action"][:, 0] = 0.7
+    loss = make_loss(critic(BehaviorSideQ(0.0)), critic(ConstantQ(0.0)), gap_margin=1.0)
+    # w = 0: the values tie, so the hinge charges the whole margin per critic: 10 * 2 * 1
+    assert run(loss, batch)["gap_loss"] == pytest.approx(20.0, rel=1e-5)
+    set_online(loss.qvalue_network_params, "weight", [1.0, 2.0])  # gaps -0.7 and -1.4
+    # critic 1 is inside the margin (0.3 charged), critic 2 beyond it (0)
+    assert run(loss, batch)["gap_loss"] == pytest.approx(10.0 * 0.3, rel=1e-4)
+    set_online(loss.qvalue_network_params, "weight", [2.0, 3.0])
+    out = run(loss, batch)
+    assert out["gap_loss"] == 0  # both beyond the margin: nothing left to push
+    assert torch.equal(out["loss_qvalue"].detach(), out["td_loss"])
+    linear = make_loss(critic(BehaviorSideQ(0.0)), critic(ConstantQ(0.0)))
+    set_online(linear.qvalue_network_params, "weight", [2.0, 3.0])
+    assert run(linear, batch)["gap_loss"] == pytest.approx(-35.0, rel=1e-5)  # the paper's gap keeps pushing
+
+
 def test_no_takeover_means_no_gap():
     loss = make_loss()
     out = run(loss, make_batch(intervention=0.0))
@@ -396,6 +416,8 @@ def test_multi_dimensional_batch_matches_the_flat_batch():
     ({"gamma": 1.5}, "gamma"),
     ({"gamma": -0.1}, "gamma"),
     ({"gap_coef": -1.0}, "gap_coef"),
+    ({"gap_margin": -0.5}, "gap_margin"),
+    ({"gap_margin": math.inf}, "gap_margin"),
     ({"psi": math.nan}, "psi"),
     ({"intervention_weight": math.inf}, "intervention_weight"),
     ({"alpha_init": 0.0}, "alpha_init"),

@@ -294,3 +294,18 @@ def test_ensemble_schedule_rejects_bad_values():
 
     with pytest.raises(ValueError, match="refresh_every"):
         EnsembleSchedule(warmup_steps=10, refresh_every=-1)
+
+
+def test_pickles_and_deep_copies_as_config_and_parameters():
+    import copy
+    import pickle
+
+    q = QEnsemble(OBS, num_members=3, hidden=(16, 16))
+    obs, act = torch.randn(4, OBS), torch.rand(4, 2) * 2 - 1
+    for clone in (pickle.loads(pickle.dumps(q)), copy.deepcopy(q)):
+        assert clone.config == q.config
+        torch.testing.assert_close(clone.values(obs, act), q.values(obs, act))
+        with torch.no_grad():
+            for p in clone.parameters():
+                p.add_(1.0)
+        assert not torch.allclose(clone.values(obs, act), q.values(obs, act))  # independent of the original

@@ -20,7 +20,8 @@ def _load_recipe():
 
 def test_smoke_run_writes_every_output(tmp_path):
     final = _load_recipe().main(["profile=smoke", "--out", str(tmp_path)])
-    for name in ("config.yaml", "metrics.csv", "final_eval.json", "training_curves.png", "actor.pt"):
+    for name in ("config.yaml", "metrics.csv", "final_eval.json", "training_curves.png", "actor.pt",
+                 "test_episode.gif"):
         assert (tmp_path / name).exists(), name
     rows = list(csv.DictReader(open(tmp_path / "metrics.csv")))
     assert len(rows) == 300 // 50  # one row per collected batch
@@ -37,6 +38,7 @@ def test_smoke_run_writes_every_output(tmp_path):
     saved = json.load(open(tmp_path / "final_eval.json"))
     assert saved["episodes"] == 1 and 0.0 <= saved["success_rate"]["mean"] <= 1.0
     assert final["training"]["frames"] == 300
+    assert 1 <= final["video"]["steps"] <= 100 and final["video"]["path"].endswith("test_episode.gif")
     # the trained agent evaluates from its run folder, reproducing the recipe's final evaluation
     from pe_rlhf.cli import main as cli
 

@@ -16,15 +16,20 @@ from pe_rlhf.evaluation import print_summary, write_json
 from pe_rlhf.training.config import load_config, method_name, save_config, to_container
 from pe_rlhf.training.metrics_logger import MetricsLogger
 from pe_rlhf.training.plots import plot_learning_curves
-from pe_rlhf.training.trainer import train
+from pe_rlhf.training.trainer import evaluate_reference, registered_policies, train
 
 
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("overrides", nargs="*", help="config overrides, e.g. profile=cpu optim.lr=3e-4")
     parser.add_argument("--out", default=None, help="output folder (default runs/<method>-<time>)")
+    parser.add_argument("--compare", default=None, metavar="POLICY",
+                        help="also evaluate a registered policy (e.g. idm-mobil) on the same test scenes and "
+                             "print both in the final table")
     parser.add_argument("--resume", default=None, metavar="DIR", help="continue the run in DIR")
     args = parser.parse_args(argv)
+    if args.compare and args.compare not in registered_policies():  # fail now, not after training
+        parser.error(f"--compare {args.compare!r}: allowed: {sorted(registered_policies())}")
     if args.resume:
         out = Path(args.resume)
         cfg = load_config(out / "config.yaml", overrides=args.overrides, apply_profile=False)
@@ -41,7 +46,12 @@ def main(argv: list[str] | None = None) -> dict:
         final = train(cfg, out, logger, checkpoint_dir=out / "checkpoints", resume=bool(args.resume))
     write_json(out / "final_eval.json", final)
     plot_learning_curves(out / "metrics.csv", out)
-    print_summary([(method, final)])
+    rows = [(method, final)]
+    if args.compare:
+        reference = evaluate_reference(args.compare, cfg)
+        write_json(out / f"reference_{args.compare}.json", reference)
+        rows.insert(0, (args.compare, reference))
+    print_summary(rows)
     print(f"outputs in {out}")
     return final
 

@@ -67,15 +67,20 @@ class DrivingTorchEnv(EnvBase):
             shape=[],
         )
 
-    def _output(self, obs: np.ndarray, info: dict) -> dict:
+    @staticmethod
+    def _output(obs: np.ndarray, info: dict, reward: float = 0.0, terminated: bool = False,
+                truncated: bool = False) -> TensorDictBase:
+        """The step (or reset) TensorDict: one tensor per dtype, unbound into ``(1,)`` views (a tensor
+        per key costs ~25 us a step more, ~1.5% of a simulator step)."""
+        floats = torch.tensor([info[k] for k in FLOAT_INFO] + [reward], dtype=torch.float32).unsqueeze(-1)
+        bools = torch.tensor([info[k] for k in BOOL_INFO] + [terminated, truncated, terminated or truncated],
+                             dtype=torch.bool).unsqueeze(-1)
+        ints = torch.tensor([info[k] for k in INT_INFO], dtype=torch.int64).unsqueeze(-1)
         out = {"observation": torch.from_numpy(obs)}
-        for k in FLOAT_INFO:
-            out[k] = torch.tensor([info[k]], dtype=torch.float32)
-        for k in BOOL_INFO:
-            out[k] = torch.tensor([info[k]], dtype=torch.bool)
-        for k in INT_INFO:
-            out[k] = torch.tensor([info[k]], dtype=torch.int64)
-        return out
+        out.update(zip(FLOAT_INFO + ("reward",), floats.unbind(0)))
+        out.update(zip(BOOL_INFO + ("terminated", "truncated", "done"), bools.unbind(0)))
+        out.update(zip(INT_INFO, ints.unbind(0)))
+        return TensorDict._new_unsafe(out, batch_size=torch.Size([]))  # keys and shapes are ours: no checks
 
     def _reset(self, tensordict: TensorDictBase | None = None, scene_seed: int | None = None,
                **kwargs) -> TensorDictBase:
@@ -84,18 +89,13 @@ class DrivingTorchEnv(EnvBase):
         options = None if scene_seed is None else {"scene_seed": int(scene_seed)}
         obs, info = self.driving_env.reset(options=options)
         out = self._output(obs, info)
-        out["done"] = out["terminated"] = out["truncated"] = torch.zeros(1, dtype=torch.bool)
-        return TensorDict(out, batch_size=[])
+        del out["reward"]  # a reset has no reward
+        return out
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = tensordict.get("action").detach().cpu().numpy()
         obs, reward, terminated, truncated, info = self.driving_env.step(action)
-        out = self._output(obs, info)
-        out["reward"] = torch.tensor([reward], dtype=torch.float32)
-        out["terminated"] = torch.tensor([terminated])
-        out["truncated"] = torch.tensor([truncated])
-        out["done"] = torch.tensor([terminated or truncated])
-        return TensorDict(out, batch_size=[])
+        return self._output(obs, info, float(reward), bool(terminated), bool(truncated))
 
     def _set_seed(self, seed: int | None) -> None:
         self.driving_env._np_random, _ = gym_seeding.np_random(seed)

@@ -9,7 +9,7 @@ from typing import Any
 
 import torch
 from tensordict import TensorDict
-from tensordict.nn import EnsembleModule
+from tensordict.nn import EnsembleModule, TensorDictParams
 from torch import nn
 
 from pe_rlhf.modules.networks import make_qvalue
@@ -29,11 +29,12 @@ class QEnsemble(nn.Module):
     ``config`` holds the constructor arguments (``QEnsemble(**q.config)`` rebuilds the
     architecture); ``save_q_ensemble`` / ``load_q_ensemble`` persist it with the weights.
 
-    Target networks: prefer ``QEnsemble(**q.config)`` + ``load_state_dict`` to
-    ``copy.deepcopy``. tensordict's ``EnsembleModule`` keeps its ``vmap``-ed forward as an
-    attribute bound to the original object, so a deep copy computes with its own parameters
-    but swaps them into the *original's* template module on every call (not thread-safe, and it
-    keeps the original alive).
+    Target networks: ``QEnsemble(**q.config)`` + ``load_state_dict``. tensordict's ``EnsembleModule``
+    keeps its ``vmap``-ed forward as an attribute bound to its object, which neither pickles nor
+    deep-copies on its own; a ``QEnsemble`` pickles (and deep-copies) as ``config`` + the members'
+    parameters, rebuilt on load. Through ``torch.multiprocessing`` (a collector worker's env
+    factory), parameters moved to shared memory with ``share_memory()`` stay shared: the worker
+    sees the main process's in-place updates.
     """
 
     def __init__(self, obs_dim: int, action_dim: int = 2, num_members: int = 5,
@@ -56,10 +57,24 @@ class QEnsemble(nn.Module):
     def forward(self, tensordict):
         return self.ensemble(tensordict)
 
+    def __reduce__(self):
+        # EnsembleModule's vmapped forward is bound to its object and does not pickle: rebuild the
+        # architecture from ``config`` around the members' parameters. Sent to a torch.multiprocessing
+        # worker, parameters in shared memory (``share_memory()``) stay shared, so the worker sees the
+        # main process's in-place updates (a fit). ``copy.deepcopy`` gets a real, independent copy.
+        requires_grad = any(p.requires_grad for p in self.parameters())
+        return _rebuild_q_ensemble, (self.config, self.ensemble.params_td.data, requires_grad)
+
     def values(self, observation: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         batch = observation.shape[:-1]
         td = TensorDict({"observation": observation, "action": action}, batch_size=batch)
         return self.ensemble(td).get("state_action_value").squeeze(-1)
+
+
+def _rebuild_q_ensemble(config: dict[str, Any], params: TensorDict, requires_grad: bool) -> QEnsemble:
+    ensemble = QEnsemble(**config)
+    ensemble.ensemble.params_td = TensorDictParams(params)  # wraps the given tensors (same storage)
+    return ensemble.requires_grad_(requires_grad)
 
 
 def save_q_ensemble(ensemble: QEnsemble, path: str | os.PathLike) -> None:

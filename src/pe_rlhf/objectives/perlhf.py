@@ -6,7 +6,12 @@ One update reads a batch of transitions ``(s, a_AV, a_exec, I, I_start, C_int, s
   zero reward and SAC's entropy bonus,
   ``y = gamma * (1 - terminated) * (min_k Q'_k(s', a') - alpha * log pi(a'|s'))``, ``a' ~ pi(s')``,
   ``L_td = 0.5 * sum_k mean (Q_k(s, a_exec) - y)^2``; plus the CQL-style gap on takeover steps
-  ``L_gap = gap_coef * sum_k mean(I * (Q_k(s, a_AV) - Q_k(s, a_exec)))``.
+  ``L_gap = gap_coef * sum_k mean(I * (Q_k(s, a_AV) - Q_k(s, a_exec)))`` (the paper's linear gap), or
+  with ``gap_margin=m`` the hinge ``gap_coef * sum_k mean(I * relu(Q_k(s, a_AV) - Q_k(s, a_exec) + m))``:
+  the same gradient until the agent's action is valued ``m`` below the executed one, then none. The
+  linear gap has no minimum: the critic can always lower ``Q(s, a_AV)`` further, and through the
+  TD target every value sinks with it (measured: ``Q(s, a_exec)`` drifting ~ -1 per 100 env steps
+  when every warm-up step is a takeover, without settling). The hinge keeps the ranking and bounds it.
 - ``loss_intervention_qvalue``: twin intervention critics,
   ``Q_int(s, a) <- C + gamma * (1 - terminated) * min_k Q_int'_k(s', a')`` with ``a`` the agent's
   action (the paper's equation; ``intervention_critic_action="behavior"`` trains on the executed
@@ -57,6 +62,7 @@ class PERLHFLoss(LossModule):
         gap_coef: weight of the CQL-style gap (the authors' code uses 10).
         psi, intervention_weight: the actor's weights on ``Q`` and ``Q_int`` (``beta``); 0 turns off
             "intervention minimisation".
+        gap_margin: ``None`` (the paper's linear gap) or a margin ``m >= 0`` for the hinge gap (see above).
         cosine_cost: ``False`` charges a constant 1 at each takeover start ("w/o cosine similarity").
         use_reward: add the env reward to the proxy-Q target (a reward-using variant; default off).
         intervention_critic_action: ``"agent"`` (the paper) or ``"behavior"``.
@@ -107,6 +113,7 @@ class PERLHFLoss(LossModule):
         num_intervention_qvalue_nets: int = 1,
         gamma: float = 0.99,
         gap_coef: float = 10.0,
+        gap_margin: float | None = None,
         psi: float = 1.0,
         intervention_weight: float = 1.0,
         cosine_cost: bool = True,
@@ -126,6 +133,9 @@ class PERLHFLoss(LossModule):
             if not math.isfinite(value) or value < 0 or (name == "gamma" and value > 1):
                 raise ValueError(f"PERLHFLoss {name}={value} is invalid: must be finite and >= 0"
                                  + (" and <= 1" if name == "gamma" else ""))
+        if gap_margin is not None and (isinstance(gap_margin, bool) or not isinstance(gap_margin, (int, float))
+                                       or not math.isfinite(gap_margin) or gap_margin < 0):
+            raise ValueError(f"PERLHFLoss gap_margin={gap_margin!r} is invalid: None or a finite number >= 0")
         if not (math.isfinite(alpha_init) and alpha_init > 0):  # log(alpha_init) is the parameter
             raise ValueError(f"PERLHFLoss alpha_init={alpha_init} is invalid: must be finite and > 0")
         for name, value in (("num_qvalue_nets", num_qvalue_nets),
@@ -142,6 +152,7 @@ class PERLHFLoss(LossModule):
                                    create_target_params=True)
         self.num_qvalue_nets = num_qvalue_nets
         self.gamma, self.gap_coef, self.psi = gamma, gap_coef, psi
+        self.gap_margin = None if gap_margin is None else float(gap_margin)
         self.intervention_weight = intervention_weight
         self.cosine_cost, self.use_reward = cosine_cost, use_reward
         self.intervention_critic_action = intervention_critic_action
@@ -220,7 +231,10 @@ class PERLHFLoss(LossModule):
         batch = behavior_action.shape[0]
         q_behavior, q_agent = q_all[:, :batch], q_all[:, batch:]
         loss_td = 0.5 * (q_behavior - target_q).pow(2).mean(-1).sum(0)
-        loss_gap = self.gap_coef * (q_agent - q_behavior[:, takeover]).sum(-1).sum(0) / batch
+        gap = q_agent - q_behavior[:, takeover]
+        if self.gap_margin is not None:
+            gap = torch.relu(gap + self.gap_margin)
+        loss_gap = self.gap_coef * gap.sum(-1).sum(0) / batch
 
         int_action = agent_action if self.intervention_critic_action == "agent" else behavior_action
         q_int = self._q("q_int", self.intervention_qvalue_network_params, tensordict, int_action)

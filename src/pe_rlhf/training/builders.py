@@ -3,15 +3,37 @@
 Each takes the recipe config (an OmegaConf ``DictConfig`` validated by
 :func:`pe_rlhf.training.config.validate_config`) and returns a ready TorchRL object,
 as TorchRL's ``sota-implementations/*/utils.py`` do.
+
+Collection backends (``collector.backend``), all TorchRL collectors:
+
+- ``single``: :class:`~torchrl.collectors.Collector` over the env this process built;
+- ``multisync``: :class:`~torchrl.collectors.MultiSyncCollector`, ``collector.num_workers`` processes,
+  each collecting ``frames_per_batch / num_workers`` steps of every batch (stacked ``(N, T / N)``);
+- ``multiasync``: :class:`~torchrl.collectors.MultiAsyncCollector`, each batch is one worker's
+  ``frames_per_batch`` steps (``(T,)``), whichever finished first; workers keep collecting while the
+  main process trains, so a batch can straddle a policy or ensemble update;
+- ``ray``: :class:`~torchrl.collectors.distributed.RayCollector` (``pip install pe-rlhf[ray]``), sync
+  mode, same layout as ``multisync``.
+
+Worker ``i`` builds its own env with :func:`make_worker_env` (its own mentor, physics, selector and
+``InterventionTransform``): env seed ``seed + i``, mentor seed ``mentor.seed + i``, warm-up
+``ceil(collector.warmup_steps / num_workers)`` steps. The Q-ensemble reaches the workers in shared
+memory (``share_memory()``; handed over through ``create_env_kwargs``, which torch.multiprocessing
+pickles with storage handles), so the main process's in-place fits are seen at once; ray workers
+cannot share memory and get the weights from :func:`push_ensemble_weights`. Policy weights reach
+the workers at :func:`sync_policy`.
 """
 
 from __future__ import annotations
 
+import functools
 import importlib
+import math
 
 import torch
-from torchrl.collectors import Collector
+from torchrl.collectors import BaseCollector, Collector, MultiAsyncCollector, MultiSyncCollector
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+from torchrl.envs.utils import ExplorationType
 from torchrl.objectives import SoftUpdate
 
 from pe_rlhf.envs.torchrl_env import make_env
@@ -19,13 +41,17 @@ from pe_rlhf.mentors import Mentor, make_mentor
 from pe_rlhf.modules import QEnsemble, make_actor, make_qvalue
 from pe_rlhf.objectives import PERLHFLoss
 from pe_rlhf.physics import IDMMobilPolicy
-from pe_rlhf.transforms import HybridActionSelector, InterventionTransform
+from pe_rlhf.transforms import HybridActionSelector, InterventionTransform, RealtimePacing
 
 OBS_DIM = 250
+# A worker's Q-ensemble seen from its collector, in TorchRL's attribute-path notation (cascade_execute);
+# make_worker_env checks that the InterventionTransform is the env's last transform.
+WORKER_ENSEMBLE_PATH = "env.transform[-1].selector.q_ensemble"
 
 
-def build_mentor(cfg) -> Mentor:
-    """A mentor by preset name, or a user's class given as ``package.module:Name``."""
+def build_mentor(cfg, worker_index: int = 0) -> Mentor:
+    """A mentor by preset name (seeded ``mentor.seed + worker_index``), or a user's class given as
+    ``package.module:Name``."""
     name = str(cfg.mentor.name)
     if ":" in name:
         module_name, _, attr = name.partition(":")
@@ -34,7 +60,11 @@ def build_mentor(cfg) -> Mentor:
             raise TypeError(f"mentor.name={name!r} built a {type(mentor).__name__}, not a pe_rlhf Mentor")
         return mentor
     kwargs = dict(cfg.mentor.get("kwargs") or {})
-    return make_mentor(name, int(cfg.mentor.seed), **kwargs)
+    if name == "human" and float(cfg.collector.realtime_hz) > 0:
+        # RealtimePacing holds the step rate; the window's own frame limiter at twice that rate never
+        # waits between steps (two clocks would fight) but still throttles the redraws while paused.
+        kwargs.setdefault("fps", 2.0 * float(cfg.collector.realtime_hz))
+    return make_mentor(name, int(cfg.mentor.seed) + int(worker_index), **kwargs)
 
 
 def build_physics(cfg) -> IDMMobilPolicy | None:
@@ -49,16 +79,53 @@ def build_q_ensemble(cfg) -> QEnsemble | None:
     return QEnsemble(OBS_DIM, num_members=int(cfg.selector.num_members), hidden=tuple(cfg.selector.hidden))
 
 
-def build_train_env(cfg, env_config, mentor: Mentor, ensemble: QEnsemble | None, physics):
-    """The TorchRL driving env with ``InterventionTransform`` (PE-RLHF with a selector, HACO without)."""
+def build_train_env(cfg, env_config, mentor: Mentor, ensemble: QEnsemble | None, physics,
+                    worker_index: int = 0, num_workers: int = 1):
+    """The TorchRL driving env with ``InterventionTransform`` (PE-RLHF with a selector, HACO without).
+
+    As worker ``worker_index`` of ``num_workers``: seeded ``seed + worker_index``, with its share
+    ``ceil(collector.warmup_steps / num_workers)`` of the warm-up.
+    """
     env = make_env(env_config)
     selector = None
     if ensemble is not None:
         selector = HybridActionSelector(ensemble, float(cfg.selector.epsilon_select),
                                         cfg.selector.variance_threshold)
+    warmup_steps = math.ceil(int(cfg.collector.warmup_steps) / num_workers)
     env.append_transform(InterventionTransform(mentor, selector, physics if selector else None,
-                                               warmup_steps=int(cfg.collector.warmup_steps)))
-    env.set_seed(int(cfg.seed))
+                                               warmup_steps=warmup_steps))
+    if float(cfg.collector.realtime_hz) > 0:  # last: it ticks before the mentor is asked (see RealtimePacing)
+        env.append_transform(RealtimePacing(float(cfg.collector.realtime_hz)))
+    env.set_seed(int(cfg.seed) + int(worker_index))
+    return env
+
+
+def build_local_env(cfg, env_config, ensemble: QEnsemble | None):
+    """``(env, mentor)`` of this process for the ``single`` backend; ``(None, None)`` for the
+    multi-worker backends, whose workers build their own (:func:`make_worker_env`)."""
+    if str(cfg.collector.backend) != "single":
+        return None, None
+    mentor = build_mentor(cfg)
+    return build_train_env(cfg, env_config, mentor, ensemble, build_physics(cfg)), mentor
+
+
+def make_worker_env(cfg, worker_index: int, num_workers: int, start_frames: int = 0,
+                    ensemble: QEnsemble | None = None):
+    """Collector worker ``worker_index``'s env: its own mentor, physics, selector over ``ensemble``.
+
+    A top-level function, so ``functools.partial(make_worker_env, cfg, ...)`` pickles into a worker.
+    ``start_frames`` (a resumed run's global frame count) sets the transform's step counter to this
+    worker's share, so a resumed run does not repeat the warm-up.
+    """
+    from pe_rlhf.training.config import driving_config
+
+    env = build_train_env(cfg, driving_config(cfg), build_mentor(cfg, worker_index), ensemble, build_physics(cfg),
+                          worker_index, num_workers)
+    transform = env.transform[-1]
+    if not isinstance(transform, InterventionTransform):
+        raise TypeError(f"a worker env must end with its InterventionTransform (WORKER_ENSEMBLE_PATH), "
+                           f"got {type(transform).__name__}")
+    transform.total_steps = int(start_frames) // num_workers
     return env
 
 
@@ -66,10 +133,83 @@ def build_actor(cfg):
     return make_actor(OBS_DIM, hidden=tuple(cfg.loss.hidden))
 
 
-def build_collector(cfg, env, actor, total_frames: int | None = None) -> Collector:
-    """A single-process collector over the env (the transform drives this process's simulator)."""
+def exploration_type(cfg) -> ExplorationType:
+    """How the agent proposes actions while collecting (``collector.exploration``): ``random`` samples
+    the TanhNormal policy (SAC's usual collection); ``deterministic`` proposes its mode, so the
+    mentor judges what the agent means rather than its exploration noise."""
+    return ExplorationType.RANDOM if str(cfg.collector.exploration) == "random" else ExplorationType.DETERMINISTIC
+
+
+def build_collector(cfg, env, actor, total_frames: int | None = None, *, ensemble: QEnsemble | None = None,
+                    start_frames: int = 0) -> BaseCollector:
+    """The ``collector.backend`` collector (see the module docstring) of ``total_frames`` frames.
+
+    ``single``: over ``env`` (this process's). Multi-worker backends: ``env`` must be None; each
+    worker builds its own (:func:`make_worker_env`, with ``ensemble`` and ``start_frames``), and
+    ``ensemble`` is moved to shared memory. Batches: ``(T,)``, or ``(N, T / N)`` for ``multisync``
+    and ``ray`` (time last; flatten with ``reshape(-1)`` for a replay buffer).
+    """
+    backend, n = str(cfg.collector.backend), int(cfg.collector.num_workers)
     frames = int(cfg.collector.total_frames) if total_frames is None else int(total_frames)
-    return Collector(env, actor, frames_per_batch=int(cfg.collector.frames_per_batch), total_frames=frames)
+    frames_per_batch = int(cfg.collector.frames_per_batch)
+    explore = {"exploration_type": exploration_type(cfg)}
+    if backend == "single":
+        return Collector(env, actor, frames_per_batch=frames_per_batch, total_frames=frames, **explore)
+    if env is not None:
+        raise ValueError(f"collector.backend={backend}: the workers build their envs; pass env=None")
+    factories = [functools.partial(make_worker_env, cfg, worker_index=i, num_workers=n, start_frames=start_frames)
+                 for i in range(n)]
+    if backend == "ray":
+        from torchrl.collectors.distributed import RayCollector
+
+        return RayCollector(**ray_collector_kwargs(cfg, factories, actor, frames, ensemble))
+    if ensemble is not None:
+        ensemble.share_memory()
+    collector_class = MultiSyncCollector if backend == "multisync" else MultiAsyncCollector
+    extra = {"cat_results": "stack"} if backend == "multisync" else {}
+    # num_threads: keep this process's thread count (TorchRL would lower it by the number of workers).
+    return collector_class(factories, actor, frames_per_batch=frames_per_batch, total_frames=frames,
+                           create_env_kwargs=[{"ensemble": ensemble}] * n, num_threads=torch.get_num_threads(),
+                           **explore, **extra)
+
+
+def ray_collector_kwargs(cfg, factories: list, actor, total_frames: int, ensemble: QEnsemble | None) -> dict:
+    """``RayCollector`` arguments: one ``Collector`` per worker, sync (batches ``(N, T / N)``). The
+    ensemble travels by value in each factory (no shared memory): :func:`push_ensemble_weights`."""
+    return {"create_env_fn": [functools.partial(f, ensemble=ensemble) for f in factories], "policy": actor,
+            "frames_per_batch": int(cfg.collector.frames_per_batch), "total_frames": int(total_frames),
+            "collector_class": Collector, "num_collectors": len(factories), "sync": True,
+            "collector_kwargs": {"exploration_type": exploration_type(cfg)}}
+
+
+def sync_policy(collector: BaseCollector) -> None:
+    """Send the actor's current weights to the collector's workers (a no-op for ``single``, whose
+    collector runs this process's actor). With multisync/multiasync TorchRL's default
+    ``SharedMemWeightSyncScheme`` already puts the actor's parameters in shared memory (measured: workers
+    act with in-place updates even before this call); the call is the scheme's hand-over all the same,
+    and what ray workers need."""
+    if not isinstance(collector, Collector):
+        collector.update_policy_weights_()
+
+
+def shutdown_collector(collector: BaseCollector) -> None:
+    """``collector.shutdown()``, keeping this process's torch thread count (TorchRL's multi-process
+    collectors add the workers' threads back to it at shutdown)."""
+    threads = torch.get_num_threads()
+    collector.shutdown()
+    torch.set_num_threads(threads)
+
+
+def push_ensemble_weights(collector: BaseCollector, ensemble: QEnsemble | None) -> None:
+    """After a fit: copy the ensemble's weights into workers that cannot share memory (ray). A no-op
+    for ``single`` (same object) and the multiprocessing backends (shared memory)."""
+    remotes = getattr(collector, "remote_collectors", None)
+    if ensemble is None or not remotes:
+        return
+    import ray
+
+    state = {k: v.detach().clone() for k, v in ensemble.state_dict().items()}
+    ray.get([r.cascade_execute.remote(f"{WORKER_ENSEMBLE_PATH}.load_state_dict", state) for r in remotes])
 
 
 def build_replay_buffer(cfg) -> TensorDictReplayBuffer:
@@ -83,7 +223,8 @@ def build_loss(cfg, actor) -> tuple[PERLHFLoss, SoftUpdate]:
     loss = PERLHFLoss(
         actor, make_qvalue(OBS_DIM, hidden=hidden), make_qvalue(OBS_DIM, hidden=hidden),
         num_qvalue_nets=int(cfg.loss.num_qvalue_nets),
-        gamma=float(cfg.loss.gamma), gap_coef=float(cfg.loss.gap_coef), psi=float(cfg.loss.psi),
+        gamma=float(cfg.loss.gamma), gap_coef=float(cfg.loss.gap_coef),
+        gap_margin=None if cfg.loss.gap_margin is None else float(cfg.loss.gap_margin), psi=float(cfg.loss.psi),
         intervention_weight=float(cfg.loss.intervention_weight), cosine_cost=bool(cfg.loss.cosine_cost),
         intervention_critic_action=str(cfg.loss.intervention_critic_action),
         num_intervention_qvalue_nets=int(cfg.loss.num_intervention_qvalue_nets),
@@ -103,3 +244,26 @@ def build_optimizers(cfg, loss: PERLHFLoss) -> dict[str, torch.optim.Optimizer]:
             loss.intervention_qvalue_network_params.flatten_keys().values(), lr=lr),
         "alpha": torch.optim.Adam([loss.log_alpha], lr=lr),
     }
+
+
+def find_transform(env, cls):
+    """The env's transform of type ``cls`` (e.g. ``InterventionTransform``, ``RealtimePacing``), or None."""
+    transform = getattr(env, "transform", None)
+    candidates = list(transform) if hasattr(transform, "__iter__") else [transform]
+    return next((t for t in candidates if isinstance(t, cls)), None)
+
+
+def build_updater(cfg, loss: PERLHFLoss, optimizers: dict, soft_update: SoftUpdate, replay, actor,
+                  update_threads: int):
+    """The learner (:mod:`pe_rlhf.training.background_updates`): ``optim.updates_per_batch`` updates per
+    ``collector.frames_per_batch`` frames, in a thread beside acting with ``optim.async_updates`` (on the
+    ``update_threads - 1`` threads acting leaves), else inline on ``update_threads``."""
+    from fractions import Fraction
+
+    from pe_rlhf.training.background_updates import BackgroundUpdater, SyncUpdater
+
+    kwargs = {"updates_per_step": Fraction(int(cfg.optim.updates_per_batch), int(cfg.collector.frames_per_batch)),
+              "max_grad_norm": cfg.optim.max_grad_norm, "actor": actor}
+    if cfg.optim.async_updates:
+        return BackgroundUpdater(loss, optimizers, soft_update, replay, threads=max(1, update_threads - 1), **kwargs)
+    return SyncUpdater(loss, optimizers, soft_update, replay, threads=update_threads, **kwargs)

@@ -43,13 +43,14 @@ DEFAULTS: dict[str, Any] = {
     "mentor": {"name": "professional", "seed": 0, "kwargs": {}},
     "physics": {"enabled": True, "see_obstacles": False, "use_idm": True, "use_mobil": True},
     "selector": {"enabled": True, "epsilon_select": 0.5, "variance_threshold": None, "num_members": 5,
-                 "hidden": [256, 256], "warmup_fit_steps": 2000, "refresh_every": 0, "refresh_steps": 500,
+                 "hidden": [256, 256], "warmup_fit_steps": 3000, "refresh_every": 0, "refresh_steps": 500,
                  "fit_loss": "mean", "target_noise": 0.1, "lr": 3.0e-4, "batch_size": 256},
     "collector": {"total_frames": 30000, "frames_per_batch": 100, "warmup_steps": 10000,
-                  "learning_starts": 100, "backend": "single", "num_workers": 1},
+                  "warmup_gap": True, "learning_starts": 100, "exploration": "random", "backend": "single", "num_workers": 1,
+                  "realtime_hz": 0},
     "replay_buffer": {"size": 100000, "batch_size": 1024},
-    "optim": {"lr": 1.0e-4, "updates_per_batch": 100, "max_grad_norm": 10.0},
-    "loss": {"gamma": 0.99, "tau": 0.005, "gap_coef": 10.0, "psi": 1.0, "intervention_weight": 1.0,
+    "optim": {"lr": 1.0e-4, "updates_per_batch": 100, "max_grad_norm": 10.0, "async_updates": False},
+    "loss": {"gamma": 0.99, "tau": 0.005, "gap_coef": 10.0, "gap_margin": None, "psi": 1.0, "intervention_weight": 1.0,
              "cosine_cost": True, "intervention_critic_action": "agent", "num_qvalue_nets": 2,
              "num_intervention_qvalue_nets": 1, "target_entropy": "auto", "alpha_init": 1.0,
              "hidden": [256, 256]},
@@ -77,6 +78,16 @@ PROFILES: dict[str, dict[str, Any]] = {
         "eval": {"every_frames": 10000, "episodes": 5, "video": False},
         "checkpoint": {"every_frames": 10000},
     },
+    # `make run`: the cpu profile on a ~10-minute budget (9K env steps, 5K of them warm-up), one
+    # evaluation of 10 test episodes at the end, a GIF; `train.py --compare idm-mobil` adds the
+    # physics policy on the same scenes to the final table.
+    "quick": {
+        "selector": {"warmup_fit_steps": 1500},
+        "collector": {"total_frames": 9000, "warmup_steps": 5000},
+        "replay_buffer": {"batch_size": 256},
+        "eval": {"every_frames": 0, "episodes": 10, "video": True},
+        "checkpoint": {"every_frames": 3000},
+    },
     # CI: the whole loop (warm-up, ensemble fit, updates, eval, checkpoint) in about a minute.
     "smoke": {
         "env": {"horizon": 100, "min_blocks": 2, "max_blocks": 2},
@@ -86,10 +97,15 @@ PROFILES: dict[str, dict[str, Any]] = {
         "replay_buffer": {"size": 1000, "batch_size": 32},
         "optim": {"updates_per_batch": 5},
         "loss": {"hidden": [32, 32]},
-        "eval": {"every_frames": 300, "episodes": 1, "video": False},
+        "eval": {"every_frames": 300, "episodes": 1, "video": True},
         "checkpoint": {"every_frames": 300, "keep": 1},
     },
 }
+
+# A person drives at a steady frame rate while the learner runs beside acting (see
+# pe_rlhf.transforms.RealtimePacing, pe_rlhf.training.background_updates); load_config applies these
+# with mentor.name=human unless the fields are given, so the saved config shows the values used.
+HUMAN_DEFAULTS: dict[str, Any] = {"collector.realtime_hz": 10.0, "optim.async_updates": True}
 
 BACKENDS = ("single", "multisync", "multiasync", "ray")
 FIT_LOSSES = ("mean", "member")
@@ -209,15 +225,36 @@ def load_config(path: str | Path | None = None, overrides: Iterable[str] = (), *
     if apply_profile:
         _merge(cfg, PROFILES[profile], f"profile {profile!r}")
     cfg.profile = profile
+    given = {key for key, value in HUMAN_DEFAULTS.items() if OmegaConf.select(cfg, key) != _default(key)}
     for key, value in parsed:
         _check_key(cfg, key, "command-line override")
         try:
             cfg.merge_with(OmegaConf.from_dotlist([f"{key}={value}"]))
         except OmegaConfBaseException as e:
             raise ConfigError(f"cannot apply override {key}={value}: {e}", key) from e
+        given.add(key)
+    if apply_profile:  # a saved config (apply_profile=False) holds its resolved values already
+        _apply_human_defaults(cfg, given)
     if validate:
         validate_config(cfg)
     return cfg
+
+
+def _default(key: str) -> Any:
+    node: Any = DEFAULTS
+    for part in key.split("."):
+        node = node[part]
+    return node
+
+
+def _apply_human_defaults(cfg: DictConfig, given: set[str]) -> None:
+    """With ``mentor.name=human``, :data:`HUMAN_DEFAULTS` for the fields not given (a field counts as
+    given when an override names it, or the file or profile sets it to a non-default value)."""
+    if cfg.mentor.name != "human":
+        return
+    for key, value in HUMAN_DEFAULTS.items():
+        if key not in given:
+            OmegaConf.update(cfg, key, value)
 
 
 # --------------------------------------------------------------------------- field rules
@@ -306,12 +343,12 @@ RULES: dict[str, Rule] = {
     "selector.target_noise": _number(0), "selector.lr": _number(0, lo_open=True),
     "selector.batch_size": _int(1),
     "collector.total_frames": _int(1), "collector.frames_per_batch": _int(1),
-    "collector.warmup_steps": _int(0), "collector.learning_starts": _int(0),
-    "collector.backend": _backend, "collector.num_workers": _int(1),
+    "collector.warmup_steps": _int(0), "collector.warmup_gap": _bool, "collector.exploration": _choice("random", "deterministic"), "collector.learning_starts": _int(0),
+    "collector.backend": _backend, "collector.num_workers": _int(1), "collector.realtime_hz": _number(0),
     "replay_buffer.size": _int(1), "replay_buffer.batch_size": _int(1),
     "optim.lr": _number(0, lo_open=True), "optim.updates_per_batch": _int(1),
-    "optim.max_grad_norm": _optional(_number(0, lo_open=True)),
-    "loss.gamma": _number(0, 1), "loss.tau": _number(0, 1, lo_open=True), "loss.gap_coef": _number(0),
+    "optim.max_grad_norm": _optional(_number(0, lo_open=True)), "optim.async_updates": _bool,
+    "loss.gamma": _number(0, 1), "loss.tau": _number(0, 1, lo_open=True), "loss.gap_coef": _number(0), "loss.gap_margin": _optional(_number(0)),
     "loss.psi": _number(0), "loss.intervention_weight": _number(0), "loss.cosine_cost": _bool,
     "loss.intervention_critic_action": _choice(*INTERVENTION_CRITIC_ACTIONS),
     "loss.num_qvalue_nets": _int(1), "loss.num_intervention_qvalue_nets": _int(1),
@@ -362,7 +399,18 @@ def _check_relations(cfg: DictConfig) -> None:
         raise _fail("collector.num_workers", c.num_workers,
                     "the single backend runs one env: use 1, or collector.backend=multisync|multiasync")
     if cfg.mentor.name == "human" and c.backend != "single":
-        raise _fail("collector.backend", c.backend, "a human mentor drives one env in this process: use single")
+        raise _fail("collector.backend", c.backend, "a human mentor drives one env in this process (one person, "
+                    "one window): use single")
+    if c.backend in ("multisync", "ray") and c.frames_per_batch % c.num_workers:
+        raise _fail("collector.frames_per_batch", c.frames_per_batch,
+                    f"must be divisible by collector.num_workers ({c.num_workers}): with collector.backend="
+                    f"{c.backend} each worker collects an equal share of every batch")
+    if c.backend != "single":
+        for field, value in (("collector.realtime_hz", c.realtime_hz),
+                             ("optim.async_updates", cfg.optim.async_updates)):
+            if value:
+                raise _fail(field, value, f"needs collector.backend=single (got {c.backend}): the pacing and the "
+                            "background learner drive one env in this process; use 0 / false")
     method_name(cfg)  # physics/selector combination
     if cfg.selector.enabled:
         for field in ("collector.warmup_steps", "selector.warmup_fit_steps"):
@@ -469,5 +517,6 @@ def save_config(cfg: DictConfig, path: str | Path) -> Path:
     return path
 
 
-__all__ = ["BACKENDS", "DEFAULTS", "PROFILES", "RULES", "ConfigError", "default_config_path", "driving_config",
-           "load_config", "method_name", "physics_config", "save_config", "to_container", "validate_config"]
+__all__ = ["BACKENDS", "DEFAULTS", "HUMAN_DEFAULTS", "PROFILES", "RULES", "ConfigError", "default_config_path",
+           "driving_config", "load_config", "method_name", "physics_config", "save_config", "to_container",
+           "validate_config"]

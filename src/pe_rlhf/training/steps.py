@@ -5,21 +5,46 @@ from __future__ import annotations
 import torch
 from tensordict import TensorDictBase
 
+from pe_rlhf.modules import add_next_actions
 from pe_rlhf.objectives import PERLHFLoss
 
 
-def relabel_warmup(batch: TensorDictBase) -> TensorDictBase:
-    """Warm-up transitions as the loss should see them: the mentor's executed action stands as the
-    agent's (so the CQL-style gap is 0) and no takeover is recorded (no intervention cost).
+def ensemble_transitions(batch: TensorDictBase) -> TensorDictBase:
+    """Warm-up transitions as the Q-ensemble is fitted on them: a copy whose ``action`` is the executed
+    (mentor's) ``("next", "behavior_action")`` and whose ``("next", "action")`` is the action executed
+    at ``s'`` (:func:`~pe_rlhf.modules.add_next_actions`), so ``Q_k`` estimates the value of the
+    *driving* policy. (The root ``action`` of a collected batch is the agent's proposal, which the
+    mentor overrode during warm-up: fitted on it, ``Q`` would learn that the action does not matter.)
+
+    ``batch``: a flat ``(T,)`` run of consecutive steps from the collector.
+    """
+    td = batch.select("observation", "next", strict=False).clone()
+    td.set("action", td.get(("next", "behavior_action")).clone())
+    return add_next_actions(td)
+
+
+def relabel_warmup(batch: TensorDictBase, keep_agent_action: bool = True) -> TensorDictBase:
+    """Warm-up transitions as the loss should see them. The mentor drove every step, so nothing is
+    charged: ``intervention_start`` and ``intervention_cost`` are zeroed (forced driving is no takeover).
+
+    ``keep_agent_action=True`` (the recipe's default, ``collector.warmup_gap``): the agent's
+    proposals stay as ``action`` and every step stays flagged ``intervention``, so the CQL-style gap
+    ranks the mentor's action above the agent's from the first update (the paper's warm-up, in which
+    "human mentors continuously control the agent"). ``False``: the mentor's executed action stands as
+    the agent's and no step is flagged (gap 0: the warm-up teaches only through the TD term).
 
     Reads/writes ``action`` and, under ``next``: ``behavior_action``, ``intervention``,
     ``intervention_start``, ``intervention_cost`` (shapes ``(T, 2)`` / ``(T, 1)``).
     """
     batch = batch.clone(False)
-    batch.set("action", batch.get(("next", "behavior_action")).clone())
-    for key in ("intervention", "intervention_start"):
-        batch.set(("next", key), torch.zeros_like(batch.get(("next", key))))
-    batch.set(("next", "intervention_cost"), torch.zeros_like(batch.get(("next", "intervention_cost"))))
+    nxt = batch.get("next")
+    if keep_agent_action:
+        nxt.set("intervention", torch.ones_like(nxt.get("intervention")))
+    else:
+        batch.set("action", nxt.get("behavior_action").clone())
+        nxt.set("intervention", torch.zeros_like(nxt.get("intervention")))
+    nxt.set("intervention_start", torch.zeros_like(nxt.get("intervention_start")))
+    nxt.set("intervention_cost", torch.zeros_like(nxt.get("intervention_cost")))
     return batch
 
 

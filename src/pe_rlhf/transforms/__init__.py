@@ -1,6 +1,7 @@
-"""TorchRL transforms of PE-RLHF: mentor intervention and hybrid (mentor vs physics) action selection."""
+"""TorchRL transforms of PE-RLHF: mentor intervention, hybrid action selection, real-time pacing."""
 
 from pe_rlhf.transforms.intervention import InterventionTransform, takeover_cost
+from pe_rlhf.transforms.pacing import RealtimePacing
 from pe_rlhf.transforms.selector import HybridActionSelector
 
-__all__ = ["HybridActionSelector", "InterventionTransform", "takeover_cost"]
+__all__ = ["HybridActionSelector", "InterventionTransform", "RealtimePacing", "takeover_cost"]
