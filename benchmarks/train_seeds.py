@@ -98,6 +98,34 @@ def mean_std(values: list[float]) -> dict[str, float]:
     return {"mean": float(np.mean(values)), "std": float(np.std(values))}
 
 
+def markdown(result: dict) -> str:
+    """The README tables: test metrics (per seed, mean +- std, the reference policy) and training figures."""
+    def cell(stat):
+        return f"{stat['mean']:.2f} ± {stat['std']:.2f}"
+
+    test_keys = ("success_rate", "episodic_return", "safety_violation", "travel_distance", "travel_velocity",
+                 "overtake_count")
+    lines = ["| agent | success | return | safety viol. | distance m | km/h | overtakes |",
+             "|---|---|---|---|---|---|---|"]
+    ref = result["reference"]
+    lines.append(f"| {ref['policy']} | {cell(ref['success_rate'])} | {cell(ref['episodic_return'])} | "
+                 f"{cell(ref['safety_violation'])} | | | |")
+    for seed, p in result["per_seed"].items():
+        lines.append(f"| PE-RLHF seed {seed} | " + " | ".join(f"{p['test'][k]['mean']:.2f}" for k in test_keys) + " |")
+    o = result["over_seeds"]
+    lines.append("| **PE-RLHF, mean ± std over seeds** | " + " | ".join(
+        cell(o["test_success_rate"] if k == "success_rate" else o[f"test_{k}"]) for k in test_keys) + " |")
+    lines += ["", "| seed | train safety viol. (per 1K steps) | takeover data usage | value-takeover rate | "
+              "takeover rate, first → last third | wall min (env / updates) |", "|---|---|---|---|---|---|"]
+    for seed, p in result["per_seed"].items():
+        t = p["training"]
+        lines.append(f"| {seed} | {t['safety_violations']:.0f} ({t['safety_violations_per_1k']:.2f}) | "
+                     f"{t['takeover_data_usage']:.2f} | {t['value_takeover_rate']:.2f} | "
+                     f"{t['takeover_rate_first_third']:.2f} → {t['takeover_rate_last_third']:.2f} | "
+                     f"{t['wall_s'] / 60:.1f} ({t['env_s'] / 60:.1f} / {t['update_s'] / 60:.1f}) |")
+    return "\n".join(lines)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("overrides", nargs="*", help="recipe overrides added to profile=cpu")
@@ -106,7 +134,14 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=50)
     parser.add_argument("--compare", default="idm-mobil")
     parser.add_argument("--json", default=None)
+    parser.add_argument("--markdown-from", default=None, metavar="JSON",
+                        help="only print (and write next to it as .md) the tables of an earlier run's JSON")
     args = parser.parse_args()
+    if args.markdown_from:
+        table = markdown(json.loads(Path(args.markdown_from).read_text()))
+        Path(args.markdown_from).with_suffix(".md").write_text(table + "\n")
+        print(table)
+        return
     os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
     sys.path.insert(0, str(ROOT / "src"))
     import torch
@@ -157,9 +192,11 @@ def main() -> None:
     }
     plot_takeover(runs, out / "takeover_rate.png")
     print(json.dumps(result["over_seeds"], indent=1))
+    print(markdown(result))
     print(f"{args.compare}: success {reference['success_rate']['mean']:.2f}")
     if args.json:
         Path(args.json).write_text(json.dumps(result, indent=1, default=float))
+        Path(args.json).with_suffix(".md").write_text(markdown(result) + "\n")
         print(f"wrote {args.json}")
 
 

@@ -32,7 +32,7 @@ FRAME_COLUMNS = ("time/frame_ms_mean", "time/frame_jitter_ms_p95", "time/frame_j
 def test_pacing_holds_the_rate_across_resets():
     from torchrl.envs import GymEnv
 
-    pacing = RealtimePacing(hz=20)
+    pacing = RealtimePacing(hz=10)  # 100 ms: long against a busy CI machine's oversleep
     env = GymEnv("Pendulum-v1").append_transform(pacing)
     env.set_seed(0)
     env.rollout(11)
@@ -40,8 +40,8 @@ def test_pacing_holds_the_rate_across_resets():
     env.rollout(10, break_when_any_done=False)
     stats = pacing.frame_stats()
     assert stats["frames"] == 20  # the first step starts the clock
-    assert abs(stats["frame_ms_mean"] - 50.0) <= 5.0, stats
-    assert stats["frame_ms_p50"] == pytest.approx(50.0, abs=5.0)
+    assert abs(stats["frame_ms_mean"] - 100.0) <= 10.0, stats
+    assert stats["frame_ms_p50"] == pytest.approx(100.0, abs=10.0)
     assert set(stats) >= {f"{k}_{s}" for k in ("frame_ms", "jitter_ms")
                           for s in ("mean", "std", "p50", "p95", "p99", "max")} | {"late_frames"}
     assert pacing.frame_stats(last=5)["frames"] == 5

@@ -114,6 +114,13 @@ def test_cpu_profile_changes_the_documented_fields():
     assert cpu.collector.total_frames == 30000
 
 
+def test_quick_profile_is_make_runs_ten_minute_budget():
+    quick = load_config(overrides=["profile=quick"])
+    assert quick.collector.total_frames == 9000 and quick.collector.warmup_steps == 5000
+    assert quick.replay_buffer.batch_size == 256 and quick.eval.video and quick.eval.every_frames == 0
+    assert list(quick.loss.hidden) == [256, 256]  # the paper's networks
+
+
 def test_smoke_profile_is_tiny():
     cfg = load_config(overrides=["profile=smoke"])
     assert cfg.collector.total_frames <= 500 and cfg.collector.warmup_steps <= 100

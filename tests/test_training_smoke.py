@@ -19,7 +19,7 @@ def _load_recipe():
 
 
 def test_smoke_run_writes_every_output(tmp_path):
-    final = _load_recipe().main(["profile=smoke", "--out", str(tmp_path)])
+    final = _load_recipe().main(["profile=smoke", "--out", str(tmp_path), "--compare", "idm-mobil"])
     for name in ("config.yaml", "metrics.csv", "final_eval.json", "training_curves.png", "actor.pt",
                  "test_episode.gif"):
         assert (tmp_path / name).exists(), name
@@ -38,6 +38,8 @@ def test_smoke_run_writes_every_output(tmp_path):
     saved = json.load(open(tmp_path / "final_eval.json"))
     assert saved["episodes"] == 1 and 0.0 <= saved["success_rate"]["mean"] <= 1.0
     assert final["training"]["frames"] == 300
+    reference = json.load(open(tmp_path / "reference_idm-mobil.json"))  # --compare: same scenes, other policy
+    assert reference["policy"] == "idm-mobil" and reference["seeds"] == saved["seeds"]
     assert 1 <= final["video"]["steps"] <= 100 and final["video"]["path"].endswith("test_episode.gif")
     # the trained agent evaluates from its run folder, reproducing the recipe's final evaluation
     from pe_rlhf.cli import main as cli
@@ -47,6 +49,14 @@ def test_smoke_run_writes_every_output(tmp_path):
                 "--config-override", "max_blocks=2", "--json", str(tmp_path / "again.json")]) == 0
     again = json.load(open(tmp_path / "again.json"))
     assert again["episodic_return"]["mean"] == saved["episodic_return"]["mean"]
+
+
+def test_unknown_compare_policy_fails_before_training(tmp_path, capsys):
+    import pytest
+
+    with pytest.raises(SystemExit):
+        _load_recipe().main(["profile=smoke", "--out", str(tmp_path), "--compare", "idm-mobl"])
+    assert "allowed" in capsys.readouterr().err and not (tmp_path / "metrics.csv").exists()
 
 
 def test_resume_continues_without_gap_or_repeat(tmp_path):

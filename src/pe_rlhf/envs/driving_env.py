@@ -7,7 +7,14 @@ terminal term: +20 at the destination, -5 for a crash or leaving the road.
 Episodes end on success, crash or out of road (terminated) or at ``horizon`` steps
 (truncated). ``info`` holds, every step: ``cost``, ``success``, ``crash_vehicle``,
 ``crash_object``, ``out_of_road``, ``route_completion``, ``travel_distance`` [m, odometer],
-``velocity`` [km/h], ``overtakes`` (vehicles passed, once each), ``scene_seed``.
+``velocity`` [km/h], ``overtakes`` (vehicles passed, once each), ``scene_seed``, ``sim_error``.
+
+Simulator faults: if a step raises, or returns a non-finite observation, reward or info value, the
+episode ends there as truncated with ``info["sim_error"] = True`` (observation and info of the last
+good step, reward and cost 0) and a warning on the ``pe_rlhf.envs`` logger naming the scene, the
+step and the fault; the next ``reset`` loads a fresh scene, so a run goes on.
+``MAX_CONSECUTIVE_SIM_ERRORS`` faults in a row (no good step between them) re-raise: the simulator
+is broken, not unlucky.
 """
 
 from __future__ import annotations
@@ -39,6 +46,12 @@ CRASH_PENALTY = 5.0
 OUT_OF_ROAD_PENALTY = 5.0
 ROAD_EDGE_MARGIN = 1.0  # [m] the ego centre may pass the edge line by this much before it is off road
 SCENE_CACHE = 128
+MAX_CONSECUTIVE_SIM_ERRORS = 5
+log = logging.getLogger("pe_rlhf.envs")
+
+
+class SimulatorError(RuntimeError):
+    """The simulator failed on ``MAX_CONSECUTIVE_SIM_ERRORS`` steps in a row."""
 
 
 class EgoVehicle(Vehicle):
@@ -76,6 +89,9 @@ class DrivingEnv(AbstractEnv):
         self.lidar = EgoLidar(self.world.lidar_beams, self.world.lidar_range)
         self._scenes: OrderedDict[int, Scene] = OrderedDict()
         self.last_action = np.zeros(2, dtype=np.float32)
+        self.sim_errors = 0  # steps ended by a simulator fault, over the env's life
+        self._consecutive_errors = 0
+        self._last_good: tuple[np.ndarray, dict] | None = None
         super().__init__(
             {
                 "simulation_frequency": self.world.simulation_frequency,
@@ -125,6 +141,7 @@ class DrivingEnv(AbstractEnv):
         self._load(self.scene(self.scene_seed))
         obs = build_observation(self)
         info = self._info_dict(cost=0.0)
+        self._last_good = (obs, info)
         if self.render_mode == "human":
             self.render()
         return obs, info
@@ -158,8 +175,37 @@ class DrivingEnv(AbstractEnv):
 
     # -- dynamics ------------------------------------------------------------------------
     def step(self, action):
-        if self.road is None or self.vehicle is None:
+        """One policy step (see the module docstring); a simulator fault ends the episode as truncated."""
+        if self.road is None or self.vehicle is None or self._last_good is None:
             raise RuntimeError("call reset() before step()")
+        if not np.isfinite(np.asarray(action, dtype=np.float64)).all():
+            raise ValueError(f"action {np.asarray(action).tolist()} is not finite (a caller's bug, not a simulator "
+                             "fault: pe_rlhf's InterventionTransform never executes one)")
+        step = round(self.time * self.world.policy_frequency)  # this step's index in the episode
+        try:
+            out = self._simulate(action)
+            fault, error = _non_finite(out), None
+        except Exception as e:  # noqa: BLE001 - any simulator failure ends only this episode
+            fault, error = f"{type(e).__name__}: {e}", e
+        if fault is None:
+            self._consecutive_errors = 0
+            self._last_good = (out[0], out[4])
+            return out
+        return self._fault_step(step, fault, error)
+
+    def _fault_step(self, step: int, fault: str, error: Exception | None):
+        """End the episode after a simulator fault: the last good observation and info, truncated."""
+        self.sim_errors += 1
+        self._consecutive_errors += 1
+        if self._consecutive_errors >= MAX_CONSECUTIVE_SIM_ERRORS:
+            raise SimulatorError(f"the simulator failed on {MAX_CONSECUTIVE_SIM_ERRORS} steps in a row "
+                                 f"(scene {self.scene_seed}): {fault}") from error
+        log.warning("scene %s step %d: simulator fault (%s); episode ended as truncated (sim_error)",
+                    self.scene_seed, step, fault[:300])
+        obs, info = self._last_good
+        return obs.copy(), 0.0, False, True, {**info, "cost": 0.0, "sim_error": True}
+
+    def _simulate(self, action):
         steering, accel = action_to_controls(action)
         self.last_action = np.clip(np.asarray(action, dtype=np.float32).reshape(2), -1, 1)
         ego = self.vehicle
@@ -245,6 +291,7 @@ class DrivingEnv(AbstractEnv):
             "velocity": float(self.vehicle.speed * 3.6),
             "overtakes": int(len(self._overtaken)),
             "scene_seed": int(self.scene_seed),
+            "sim_error": False,
         }
 
     # -- rendering -----------------------------------------------------------------------
@@ -262,3 +309,14 @@ class DrivingEnv(AbstractEnv):
         if self.render_mode == "rgb_array":
             return self.viewer.get_image()
         return None
+
+
+def _non_finite(step: tuple) -> str | None:
+    """What is not finite in a step's ``(obs, reward, terminated, truncated, info)``, or None."""
+    obs, reward, _, _, info = step
+    if not np.isfinite(obs).all():
+        return f"observation has {int((~np.isfinite(obs)).sum())} non-finite values"
+    if not np.isfinite(reward):
+        return f"reward is {reward}"
+    bad = [k for k, v in info.items() if isinstance(v, float) and not np.isfinite(v)]
+    return f"info {bad} not finite" if bad else None

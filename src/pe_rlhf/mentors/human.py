@@ -13,8 +13,14 @@ actions, takeover count, speed, step and the key help line. Keys and axes:
   finally drove this step (the physics/hybrid selector may pick PHYSICS); by default HUMAN
   when the person takes over, else AGENT.
 - ``act(env)``: the human drives alone (demonstrations; shown as HUMAN, not counted as takeovers).
-- Quit (Esc/Q, window close) sets ``quit_requested``, releases control and raises nothing:
-  callers check the flag. ``screenshot(path)`` saves the window as PNG.
+- Quit (Esc/Q, window close) sets ``quit_requested``, releases control, closes the window and
+  raises nothing: from then on the agent drives (every ``decide`` is "no takeover", nothing is
+  drawn) and callers may check the flag. ``screenshot(path)`` saves the window as PNG.
+- ``on_disconnect`` (``mentor.kwargs.on_disconnect`` in the recipe): ``"agent"`` (default) as
+  above, and an unplugged gamepad hands control back to the agent until the person drives again;
+  ``"pause"``: a closed window reopens paused, an unplugged gamepad pauses, until P/Space or the
+  gamepad is back (the env waits inside ``decide``). ``disconnects`` counts the times the person
+  left (the trainer checkpoints after each).
 Works headless under ``SDL_VIDEODRIVER=dummy``.
 """
 
@@ -36,6 +42,7 @@ PANEL_HEIGHT = 150
 AGENT_COLOR, HUMAN_COLOR = (40, 110, 230), (245, 140, 20)
 SOURCE_COLORS = {"AGENT": AGENT_COLOR, "HUMAN": HUMAN_COLOR, "PHYSICS": (30, 160, 70)}
 PANEL_BG, TEXT, DIM = (28, 30, 36), (235, 235, 235), (150, 150, 160)
+ON_DISCONNECT = ("agent", "pause")
 
 
 class HumanMentor(Mentor):
@@ -45,10 +52,13 @@ class HumanMentor(Mentor):
 
     def __init__(self, fps: float = 10.0, size: tuple[int, int] = (900, 600),
                  mapping: JoystickMapping | None = None, input_state: InputState | None = None,
-                 title: str = "PE-RLHF mentor", scaling: float = 6.0):
+                 title: str = "PE-RLHF mentor", scaling: float = 6.0, on_disconnect: str = "agent"):
+        if on_disconnect not in ON_DISCONNECT:
+            raise ValueError(f"on_disconnect={on_disconnect!r} is invalid: allowed: {list(ON_DISCONNECT)}")
         self.scaling = float(scaling)  # [px/m] at 900 px width (the view spans ~150 m)
         self.fps, self.size, self.title = float(fps), (int(size[0]), int(size[1])), title
         self.input = input_state or InputState(mapping)
+        self.input.pause_on_disconnect = on_disconnect == "pause"
         self.clock = pygame.time.Clock()
         self.screen: pygame.Surface | None = None
         self._viewer: EnvViewer | None = None
@@ -73,11 +83,18 @@ class HumanMentor(Mentor):
     def paused(self) -> bool:
         return self.input.paused
 
+    @property
+    def disconnects(self) -> int:
+        """Times the person left: quit key, window closed, gamepad in use unplugged."""
+        return self.input.disconnects
+
     def reset(self, env) -> None:
         self.input.reset()
         self.steps, self._taking_over, self.control = 0, False, "AGENT"
         self.agent_action = np.zeros(2, dtype=np.float32)
         self.human_action = np.zeros(2, dtype=np.float32)
+        if self.input.quit_requested:
+            return
         self._handle_events()
         self._draw(env)
 
@@ -123,20 +140,25 @@ class HumanMentor(Mentor):
 
     # -- one step ----------------------------------------------------------------------
     def _step(self, env, agent: bool) -> tuple[bool, np.ndarray]:
-        self._handle_events()
-        while self.input.paused and not self.input.quit_requested:
-            self._draw(env)
-            self._tick()
+        if not self.input.quit_requested:
             self._handle_events()
-        takeover, action, _, quit_ = self.input.poll()
-        if quit_:
-            takeover = False  # quitting releases control; callers check quit_requested
+            while self.input.paused and not self.input.quit_requested:
+                self._draw(env)
+                self._tick()
+                self._handle_events()
+        if self.input.quit_requested:  # the person left: the agent drives, the window is gone
+            self.close()
+            self.steps += 1
+            self._taking_over, self.control = False, "AGENT"
+            self.human_action = np.zeros(2, dtype=np.float32)
+            return False, self.human_action
+        takeover, action, _, _ = self.input.poll()
         if agent:  # takeovers of the agent are counted; driving alone (act) is not one
             self.takeover_count += int(takeover and not self._taking_over)
             self.takeover_steps += int(takeover)
             self._taking_over = takeover
         else:
-            takeover = not quit_  # driving alone: the human always controls
+            takeover = True  # driving alone: the human always controls
         self.human_action = action
         self.control = "HUMAN" if takeover else "AGENT"
         self.steps += 1
@@ -147,6 +169,8 @@ class HumanMentor(Mentor):
     def _handle_events(self) -> None:
         self._ensure_window()
         self.input.pump()
+        if self.input.window_closed:  # closed by the person: gone, or reopened (paused) by the next draw
+            self.close()
 
     def _tick(self) -> None:
         if self.fps > 0:
@@ -161,6 +185,7 @@ class HumanMentor(Mentor):
         self.screen = pygame.display.set_mode(self.size)
         pygame.display.set_caption(self.title)
         self.input.open_joysticks()
+        self.input.window_closed = False
         self._viewer, self._fonts = None, {}
 
     def _font(self, px: int) -> pygame.font.Font:
@@ -246,7 +271,9 @@ class HumanMentor(Mentor):
             veil = pygame.Surface((W, scene_h), pygame.SRCALPHA)
             veil.fill((0, 0, 0, 110))
             self.screen.blit(veil, (0, 0))
-            self._text("PAUSED - press P or Space", (W // 2, scene_h // 2), 48, (255, 255, 255), center=True)
+            reason = f" ({self.input.pause_reason})" if self.input.pause_reason else ""
+            self._text(f"PAUSED{reason} - press P or Space", (W // 2, scene_h // 2), 48, (255, 255, 255),
+                       center=True)
         pygame.draw.rect(self.screen, PANEL_BG, (0, scene_h, W, PANEL_HEIGHT))
         control, takeovers, speed = self.overlay_lines()[:3]
         pygame.draw.rect(self.screen, SOURCE_COLORS[control], (12, scene_h + 12, 170, 52), border_radius=8)

@@ -12,6 +12,12 @@ Keyboard (any driving key held = takeover; releasing all of them hands control b
 - Up/W: throttle +1. Down/S: throttle -1 (brake; wins over Up when both are held).
 - P/Space: pause toggle. Esc/Q or closing the window: quit. Losing window focus releases keys.
 
+The person leaving (``disconnects`` counts each time): Esc/Q always quits (``quit_requested``: the
+agent drives from then on), and so, by default, does closing the window; unplugging the gamepad in
+use hands control back to the agent until the person drives again (keys or another device). With
+``pause_on_disconnect`` a closed window or an unplugged gamepad pauses instead (``pause_reason`` says
+why) until the person presses P/Space or plugs a gamepad back in.
+
 Joystick (any device pygame sees; :class:`JoystickMapping`, hot-plugged via
 ``JOYDEVICEADDED``/``JOYDEVICEREMOVED``; an unplugged device releases control). Each axis goes
 through the rescaled deadzone ``dz(v) = sign(v) * max(0, |v| - d) / (1 - d)`` (``d`` = 0.1:
@@ -100,7 +106,8 @@ class InputState:
     """Keyboard + joystick state from pygame events; ``poll()`` once per env step."""
 
     def __init__(self, mapping: JoystickMapping | None = None, steer_rate: float = 0.1,
-                 steer_return: float = 0.2, keyboard: bool = True, joystick: bool = True):
+                 steer_return: float = 0.2, keyboard: bool = True, joystick: bool = True,
+                 pause_on_disconnect: bool = False):
         self.mapping = mapping or JoystickMapping()
         self.steer_rate, self.steer_return = float(steer_rate), float(steer_return)
         self.use_keyboard, self.use_joystick = keyboard, joystick
@@ -111,6 +118,10 @@ class InputState:
         self.devices: dict[int, object] = {}  # instance_id -> opened pygame Joystick
         self.paused = False
         self.quit_requested = False
+        self.pause_on_disconnect = bool(pause_on_disconnect)
+        self.pause_reason: str | None = None  # "window closed" / "gamepad unplugged" while such a pause lasts
+        self.window_closed = False  # the window was closed: whoever draws must close and reopen it
+        self.disconnects = 0  # times the person left: quit key, window closed, gamepad in use unplugged
 
     # -- events ----------------------------------------------------------------------
     def open_joysticks(self) -> None:
@@ -139,15 +150,18 @@ class InputState:
         """Update the state from one pygame event (others are ignored)."""
         t = event.type
         if t in (pygame.QUIT, pygame.WINDOWCLOSE):
-            self.quit_requested = True
+            if not self.window_closed:  # SDL sends both for one click
+                self.window_closed = True
+                self._disconnect("window closed")
         elif t == pygame.WINDOWFOCUSLOST:
             self.held.clear()  # a key released while unfocused would otherwise stay held
         elif t == pygame.KEYDOWN and self.use_keyboard:
             key = event.key
             if key in QUIT_KEYS:
+                self.disconnects += int(not self.quit_requested)
                 self.quit_requested = True
             elif key in PAUSE_KEYS:
-                self.paused = not self.paused
+                self.paused, self.pause_reason = not self.paused, None
             elif key in DRIVING_KEYS:
                 self.held.add(key)
         elif t == pygame.KEYUP and self.use_keyboard:
@@ -158,15 +172,29 @@ class InputState:
             self.axes.setdefault(event.instance_id, {})[event.axis] = float(event.value)
         elif t == pygame.JOYBUTTONDOWN:
             if event.button == self.mapping.pause_button:
-                self.paused = not self.paused
+                self.paused, self.pause_reason = not self.paused, None
             else:
                 self.buttons.setdefault(event.instance_id, set()).add(event.button)
         elif t == pygame.JOYBUTTONUP:
             self.buttons.get(event.instance_id, set()).discard(event.button)
         elif t == pygame.JOYDEVICEADDED:
             self._add_device(event.device_index)
+            if self.pause_reason == "gamepad unplugged":  # plugged back in: drive on
+                self.paused, self.pause_reason = False, None
         elif t == pygame.JOYDEVICEREMOVED:
+            in_use = event.instance_id in self.axes or event.instance_id in self.buttons
             self._release_device(event.instance_id)
+            if in_use and not (self.axes or self.buttons):
+                self._disconnect("gamepad unplugged")
+
+    def _disconnect(self, reason: str) -> None:
+        """The person left: pause (``pause_on_disconnect``), else a closed window quits (the agent drives
+        from then on) and an unplugged gamepad has already handed control back (keys still work)."""
+        self.disconnects += 1
+        if self.pause_on_disconnect and not self.quit_requested:
+            self.paused, self.pause_reason = True, reason
+        elif reason == "window closed":
+            self.quit_requested = True
 
     def pump(self) -> None:
         """Handle every pending pygame event."""
@@ -220,4 +248,5 @@ class InputState:
     def reset(self) -> None:
         """Forget ramps and the pause (held keys and devices stay: a person may keep holding)."""
         self.key_steering = 0.0
-        self.paused = False
+        if self.pause_reason is None:  # a pause for a disconnect lasts until the person is back
+            self.paused = False

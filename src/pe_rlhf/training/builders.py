@@ -43,10 +43,18 @@ from pe_rlhf.objectives import PERLHFLoss
 from pe_rlhf.physics import IDMMobilPolicy
 from pe_rlhf.transforms import HybridActionSelector, InterventionTransform, RealtimePacing
 
-OBS_DIM = 250
+OBS_DIM = 250  # the default world's observation (240 lidar beams); obs_dim(cfg) follows env.lidar_beams
 # A worker's Q-ensemble seen from its collector, in TorchRL's attribute-path notation (cascade_execute);
 # make_worker_env checks that the InterventionTransform is the env's last transform.
 WORKER_ENSEMBLE_PATH = "env.transform[-1].selector.q_ensemble"
+
+
+def obs_dim(cfg) -> int:
+    """The observation size of ``cfg.env``'s world (the networks' input width)."""
+    from pe_rlhf.envs.observation import observation_size
+    from pe_rlhf.training.config import driving_config
+
+    return observation_size(driving_config(cfg).lidar_beams)
 
 
 def build_mentor(cfg, worker_index: int = 0) -> Mentor:
@@ -76,7 +84,7 @@ def build_physics(cfg) -> IDMMobilPolicy | None:
 def build_q_ensemble(cfg) -> QEnsemble | None:
     if not cfg.selector.enabled:
         return None
-    return QEnsemble(OBS_DIM, num_members=int(cfg.selector.num_members), hidden=tuple(cfg.selector.hidden))
+    return QEnsemble(obs_dim(cfg), num_members=int(cfg.selector.num_members), hidden=tuple(cfg.selector.hidden))
 
 
 def build_train_env(cfg, env_config, mentor: Mentor, ensemble: QEnsemble | None, physics,
@@ -130,7 +138,7 @@ def make_worker_env(cfg, worker_index: int, num_workers: int, start_frames: int 
 
 
 def build_actor(cfg):
-    return make_actor(OBS_DIM, hidden=tuple(cfg.loss.hidden))
+    return make_actor(obs_dim(cfg), hidden=tuple(cfg.loss.hidden))
 
 
 def exploration_type(cfg) -> ExplorationType:
@@ -218,10 +226,10 @@ def build_replay_buffer(cfg) -> TensorDictReplayBuffer:
 
 
 def build_loss(cfg, actor) -> tuple[PERLHFLoss, SoftUpdate]:
-    hidden = tuple(cfg.loss.hidden)
+    hidden, n = tuple(cfg.loss.hidden), obs_dim(cfg)
     target_entropy = cfg.loss.target_entropy
     loss = PERLHFLoss(
-        actor, make_qvalue(OBS_DIM, hidden=hidden), make_qvalue(OBS_DIM, hidden=hidden),
+        actor, make_qvalue(n, hidden=hidden), make_qvalue(n, hidden=hidden),
         num_qvalue_nets=int(cfg.loss.num_qvalue_nets),
         gamma=float(cfg.loss.gamma), gap_coef=float(cfg.loss.gap_coef),
         gap_margin=None if cfg.loss.gap_margin is None else float(cfg.loss.gap_margin), psi=float(cfg.loss.psi),

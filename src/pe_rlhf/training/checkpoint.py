@@ -277,18 +277,17 @@ def _buffer_is_empty(buffer) -> bool:
     return not getattr(storage, "initialized", True) or len(buffer) == 0
 
 
-def _sanitize_prefetch(buffer_dir: Path) -> None:
+def _sanitize_prefetch(buffer_dir: Path, buffer) -> None:
     """torchrl pickles the prefetch queue (``prefetch.pkl``); a queue of sampled batches needs globals
-    and would be refused at load time, so it is replaced by an empty queue (the resumed buffer
-    samples those batches afresh)."""
+    and would be refused at load time, so the file is rewritten as an empty queue of the buffer's
+    capacity (the resumed buffer samples those batches afresh). The file is never unpickled here:
+    it is recognised as plain data by :func:`_pickle_is_plain` or replaced outright."""
     path = buffer_dir / "prefetch.pkl"
     if not path.exists() or _pickle_is_plain(path.read_bytes()):
         return
     import pickle
 
-    with open(path, "rb") as f:
-        state = pickle.load(f)  # noqa: S301 - our own file, written a moment ago
-    state = {"version": state.get("version", 1), "capacity": int(state.get("capacity", 0)), "queue": ()}
+    state = {"version": 1, "capacity": int(getattr(buffer, "_prefetch_cap", 0) or 0), "queue": ()}
     warnings.warn(f"{buffer_dir.name}: the replay buffer's prefetched batches are not checkpointed; "
                   "a resumed buffer samples them anew", stacklevel=3)
     path.unlink()
@@ -410,7 +409,7 @@ def save_checkpoint(
                     continue
                 bdir = tmp / f"{BUFFER_PREFIX}{name}"
                 buffer.dumps(bdir)
-                _sanitize_prefetch(bdir)
+                _sanitize_prefetch(bdir, buffer)
                 buffers_meta[name] = {"empty": False, "length": len(buffer)}
             files = {}
             for path in sorted(p for p in tmp.rglob("*") if p.is_file()):

@@ -454,8 +454,11 @@ def _check_env(env: DictConfig) -> None:
 
 
 def _check_mentor_kwargs(mentor: DictConfig) -> None:
-    if mentor.name == "human" or ":" in mentor.name:
-        return  # constructor arguments, checked when the mentor is built
+    if ":" in mentor.name:
+        return  # a user's class: its constructor arguments are checked when it is built
+    if mentor.name == "human":
+        _check_human_kwargs(mentor.kwargs)
+        return
     from pe_rlhf.mentors.simulated import SkillProfile
 
     known = sorted(f.name for f in dataclasses.fields(SkillProfile))
@@ -463,6 +466,26 @@ def _check_mentor_kwargs(mentor: DictConfig) -> None:
         if key not in known:
             raise _fail(f"mentor.kwargs.{key}", mentor.kwargs[key],
                         f"unknown SkillProfile field for mentor {mentor.name!r}; known: {known}")
+
+
+def _window_size(v) -> str | None:
+    ok = isinstance(v, (list, tuple, ListConfig)) and len(v) == 2 and all(_int(1)(x) is None for x in v)
+    return None if ok else "must be [width, height] in pixels"
+
+
+# HumanMentor arguments a YAML value can give (mapping / input_state are objects, for code only).
+HUMAN_KWARGS: dict[str, Rule] = {"fps": _number(0), "scaling": _number(0, lo_open=True), "title": _string,
+                                 "size": _window_size, "on_disconnect": _choice("agent", "pause")}
+
+
+def _check_human_kwargs(kwargs: DictConfig) -> None:
+    for key in kwargs:
+        if key not in HUMAN_KWARGS:
+            raise _fail(f"mentor.kwargs.{key}", kwargs[key],
+                        f"unknown HumanMentor argument; known: {sorted(HUMAN_KWARGS)}")
+        problem = HUMAN_KWARGS[key](kwargs[key])
+        if problem is not None:
+            raise _fail(f"mentor.kwargs.{key}", kwargs[key], problem)
 
 
 # --------------------------------------------------------------------------- views

@@ -52,8 +52,9 @@ def update(loss: PERLHFLoss, optimizers: dict, soft_update, sample: TensorDictBa
            max_grad_norm: float | None) -> dict[str, float]:
     """One gradient step on every loss term, then the Polyak target update; returns detached scalars.
 
-    Stops with a ``FloatingPointError`` naming the term if a loss is not finite (the caller saves a
-    checkpoint first).
+    Stops with a ``FloatingPointError`` before any parameter changes if a loss term (named) or an
+    optimizer's gradient norm (optimizer named) is not finite, and after the step if a parameter
+    (named) became non-finite anyway. The trainer saves a checkpoint before it passes the error on.
     """
     out = loss(sample)
     terms = {k: v for k, v in out.items() if k.startswith("loss_")}
@@ -63,18 +64,35 @@ def update(loss: PERLHFLoss, optimizers: dict, soft_update, sample: TensorDictBa
     for opt in optimizers.values():
         opt.zero_grad(set_to_none=True)
     sum(terms.values()).backward()
+    for name, opt in optimizers.items():  # every norm before any step: a bad gradient changes nothing
+        params = [p for group in opt.param_groups for p in group["params"] if p.grad is not None]
+        norm = torch.nn.utils.clip_grad_norm_(params, max_grad_norm if max_grad_norm is not None else float("inf"))
+        if not torch.isfinite(norm):
+            raise FloatingPointError(f"the gradient of optimizer {name!r} has norm {norm.item()} (not finite): "
+                                     "updates stopped before the step")
     for opt in optimizers.values():
-        if max_grad_norm is not None:
-            params = [p for group in opt.param_groups for p in group["params"]]
-            torch.nn.utils.clip_grad_norm_(params, max_grad_norm)
         opt.step()
     soft_update.step()
+    bad = nonfinite_parameters(loss)
+    if bad:
+        raise FloatingPointError(f"parameters {bad[:5]} became non-finite after an update: updates stopped")
     return {k: float(v.detach()) for k, v in out.items()}
 
 
+def nonfinite_parameters(module: torch.nn.Module) -> list[str]:
+    """Names of ``module``'s parameters holding NaN or inf (one fused check when none do; target
+    networks are Polyak averages of these, finite while they are)."""
+    params = dict(module.named_parameters())
+    if not params or bool(torch.isfinite(torch.stack([p.detach().sum() for p in params.values()])).all()):
+        return []
+    return [name for name, p in params.items() if not torch.isfinite(p.detach()).all()]
+
+
 def batch_metrics(batch: TensorDictBase) -> dict[str, float]:
-    """Counts over one collected batch (flat ``(T,)``): steps, takeovers, starts, mentor chosen, cost."""
+    """Counts over one collected batch (flat ``(T,)``): steps, takeovers, starts, mentor chosen, cost,
+    episodes ended by a simulator fault (``sim_error``)."""
     nxt = batch.get("next")
+    sim_error = nxt.get("sim_error", None)
     intervention = nxt.get("intervention").squeeze(-1)
     selected = nxt.get("mentor_selected").squeeze(-1) & intervention
     done = nxt.get("done").squeeze(-1)
@@ -87,4 +105,5 @@ def batch_metrics(batch: TensorDictBase) -> dict[str, float]:
         "safety_violations": float(nxt.get("cost").sum()),
         "episodes": float(done.sum()),
         "successes": float((nxt.get("success").squeeze(-1) & done).sum()),
+        "sim_errors": float(sim_error.sum()) if sim_error is not None else 0.0,
     }

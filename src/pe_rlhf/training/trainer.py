@@ -14,6 +14,14 @@ Phases, top to bottom in :func:`train`:
 4. every ``eval.every_frames``: evaluation on the test split without the mentor; every
    ``checkpoint.every_frames``: a checkpoint (``--resume DIR`` continues from it).
 
+What a run survives: each collected batch is journaled (:mod:`pe_rlhf.training.journal`) before
+it is used, so ``--resume`` after a kill replays the batches since the checkpoint with the RNG
+states they arrived with and loses only the batch being collected; a non-finite loss, gradient or
+parameter stops updates with a ``FloatingPointError`` naming it, after a checkpoint of everything
+collected; a mentor's disconnect (a person's window closed, gamepad unplugged: ``disconnects``)
+triggers a checkpoint at the end of that batch; the run ends with a checkpoint of its last frame;
+``train/sim_errors_total`` counts episodes the simulator's faults ended (:mod:`pe_rlhf.envs.driving_env`).
+
 ``collector.backend`` picks the collector (:func:`pe_rlhf.training.builders.build_collector`). With
 a multi-worker backend the workers own the envs, mentors and transforms, so a resume restarts the
 workers' simulated mentors (fatigue, RNG) and sets their transform step counters from the
@@ -23,7 +31,9 @@ buffers, counters) resumes exactly.
 
 from __future__ import annotations
 
+import contextlib
 import time
+import warnings
 from pathlib import Path
 
 import torch
@@ -45,7 +55,7 @@ class Counters:
 
     def __init__(self):
         self.frames = self.takeover_steps = self.takeover_starts = self.mentor_chosen_steps = 0.0
-        self.safety_violations = self.episodes = self.successes = self.updates = 0.0
+        self.safety_violations = self.episodes = self.successes = self.updates = self.sim_errors = 0.0
         self.online_frames = self.env_seconds = self.update_seconds = 0.0
 
     def add(self, m: dict[str, float], warmup: bool) -> None:
@@ -53,6 +63,7 @@ class Counters:
         self.safety_violations += m["safety_violations"]
         self.episodes += m["episodes"]
         self.successes += m["successes"]
+        self.sim_errors += m["sim_errors"]
         if not warmup:
             self.online_frames += m["steps"]
             self.takeover_steps += m["takeover_steps"]
@@ -137,6 +148,7 @@ def iteration_log(counters: Counters, m: dict, losses: dict, started: float) -> 
         "train/value_takeover_rate": counters.mentor_chosen_steps / max(counters.takeover_steps, 1.0),
         "train/intervention_cost": m["intervention_cost"],
         "train/success_rate_total": counters.successes / max(counters.episodes, 1.0),
+        "train/sim_errors_total": counters.sim_errors,
         "time/env_seconds": counters.env_seconds,
         "time/update_seconds": counters.update_seconds,
     }
@@ -159,104 +171,231 @@ def train(cfg, out_dir: Path, logger, checkpoint_dir: Path | None = None, resume
 
 
 def _train(cfg, out_dir, logger, checkpoint_dir, resume: bool, update_threads: int) -> dict:
-    from pe_rlhf.training.checkpoint import load_checkpoint, save_checkpoint
+    from pe_rlhf.training.checkpoint import restore_rng
 
-    from pe_rlhf.training.config import driving_config
+    run = _Run(cfg, logger, checkpoint_dir, update_threads)
+    journaled = run.resume() if resume else []
+    try:
+        run.start()
+        for entry in journaled:  # the killed run's batches since its checkpoint, as it processed them
+            if run.done:
+                break
+            restore_rng(entry.rng)
+            run.process(entry.batch, journaled=True)
+            run.restore_actors(entry.state)
+        run.collect()
+    except FloatingPointError as e:  # a non-finite loss, gradient or parameter: keep the data, then stop
+        raise run.stop_on_error(e) from e
+    finally:
+        run.shutdown_collector()
+    return run.finish(out_dir)
 
-    env_config = driving_config(cfg)
-    ensemble = builders.build_q_ensemble(cfg)
-    env, mentor = builders.build_local_env(cfg, env_config, ensemble)  # None, None: the workers own them
-    actor = builders.build_actor(cfg)
-    loss, soft_update = builders.build_loss(cfg, actor)
-    optimizers = builders.build_optimizers(cfg, loss)
-    replay, warmup_buffer = builders.build_replay_buffer(cfg), builders.build_replay_buffer(cfg)
-    schedule = EnsembleSchedule(int(cfg.collector.warmup_steps), int(cfg.selector.refresh_every),
-                                int(cfg.selector.warmup_fit_steps), int(cfg.selector.refresh_steps))
-    counters = Counters()
-    objects = {"modules": {"loss": loss, **({"ensemble": ensemble} if ensemble is not None else {})},
-               "optimizers": optimizers, "replay_buffers": {"replay": replay, "warmup": warmup_buffer}}
-    transform = builders.find_transform(env, InterventionTransform) if env is not None else None
-    pacing = builders.find_transform(env, RealtimePacing) if env is not None else None
-    if resume:
-        resume_state = load_checkpoint(checkpoint_dir, **objects)
-        logger.truncate_after(int(resume_state["step"]) + 1)  # rows after the checkpoint are re-collected
-        counters.load_state_dict(resume_state["counters"])
-        schedule.load_state_dict(resume_state["schedule"])
-        if transform is not None:  # multi-worker backends restart them (see the module docstring)
-            transform.total_steps = int(resume_state["transform_steps"])
-            if resume_state["mentor"] is not None:
-                mentor.load_state_dict(resume_state["mentor"])
-    remaining = int(cfg.collector.total_frames) - int(counters.frames)
-    updater = builders.build_updater(cfg, loss, optimizers, soft_update, replay, actor, update_threads)
-    updates0, update_seconds0 = counters.updates, counters.update_seconds
-    collector = builders.build_collector(cfg, env, updater.policy, remaining, ensemble=ensemble,
-                                         start_frames=int(counters.frames)) if remaining > 0 else None
-    started, losses = time.time(), {}
-    next_eval = _next_multiple(counters.frames, int(cfg.eval.every_frames))
-    next_ckpt = _next_multiple(counters.frames, int(cfg.checkpoint.every_frames))
-    bar = tqdm(total=int(cfg.collector.total_frames), initial=int(counters.frames), desc="PE-RLHF", unit="step")
-    t_env = time.time()
-    updater.start()  # optim.async_updates: the learner thread (pe_rlhf.training.background_updates)
-    for batch in collector or []:
-        counters.env_seconds += time.time() - t_env
-        if counters.frames >= int(cfg.collector.total_frames):
-            break
-        warmup = counters.frames < int(cfg.collector.warmup_steps)
+
+class _Run:
+    """One training run: its objects, and the work done on each batch, collected or replayed from the
+    journal on ``--resume`` (:mod:`pe_rlhf.training.journal`)."""
+
+    def __init__(self, cfg, logger, checkpoint_dir: Path | None, update_threads: int):
+        from pe_rlhf.training.config import driving_config
+        from pe_rlhf.training.journal import BatchJournal
+
+        self.cfg, self.logger, self.checkpoint_dir = cfg, logger, checkpoint_dir
+        self.env_config = driving_config(cfg)
+        self.ensemble = builders.build_q_ensemble(cfg)
+        self.env, self.mentor = builders.build_local_env(cfg, self.env_config, self.ensemble)  # None: workers own them
+        self.actor = builders.build_actor(cfg)
+        self.loss, soft_update = builders.build_loss(cfg, self.actor)
+        self.optimizers = builders.build_optimizers(cfg, self.loss)
+        self.replay, self.warmup_buffer = builders.build_replay_buffer(cfg), builders.build_replay_buffer(cfg)
+        self.schedule = EnsembleSchedule(int(cfg.collector.warmup_steps), int(cfg.selector.refresh_every),
+                                         int(cfg.selector.warmup_fit_steps), int(cfg.selector.refresh_steps))
+        self.counters = Counters()
+        modules = {"loss": self.loss, **({"ensemble": self.ensemble} if self.ensemble is not None else {})}
+        self.objects = {"modules": modules, "optimizers": self.optimizers,
+                        "replay_buffers": {"replay": self.replay, "warmup": self.warmup_buffer}}
+        self.transform = builders.find_transform(self.env, InterventionTransform) if self.env is not None else None
+        self.pacing = builders.find_transform(self.env, RealtimePacing) if self.env is not None else None
+        periodic = checkpoint_dir is not None and int(cfg.checkpoint.every_frames) > 0
+        self.journal = BatchJournal(Path(checkpoint_dir) / "journal") if periodic else None
+        self.updater = builders.build_updater(cfg, self.loss, self.optimizers, soft_update, self.replay, self.actor,
+                                              update_threads)
+        self.collector, self.losses, self.saved_step, self.disconnects = None, {}, -1, 0
+
+    @property
+    def done(self) -> bool:
+        return self.counters.frames >= int(self.cfg.collector.total_frames)
+
+    def run_info(self) -> dict:
+        """What a checkpoint must match to be resumed (checked by :func:`check_resumable`)."""
+        from pe_rlhf import __version__
+
+        return {"pe_rlhf_version": __version__, "env_config": self.env_config.to_dict()}
+
+    def resume(self) -> list:
+        """Load the newest checkpoint; return the journal entries written after it."""
+        from pe_rlhf.training.checkpoint import find_checkpoint, load_checkpoint
+
+        state = load_checkpoint(self.checkpoint_dir, **self.objects)
+        check_resumable(state.get("run"), self.run_info(), find_checkpoint(self.checkpoint_dir))
+        self.saved_step = int(state["step"])
+        self.logger.truncate_after(self.saved_step + 1)  # rows after the checkpoint are logged again
+        self.counters.load_state_dict(state["counters"])
+        self.schedule.load_state_dict(state["schedule"])
+        self.restore_actors(state)
+        return self.journal.entries_after(self.saved_step) if self.journal is not None else []
+
+    def restore_actors(self, state: dict) -> None:
+        """The transform's step count and the mentor's state (multi-worker backends restart theirs)."""
+        if self.transform is not None:
+            self.transform.total_steps = int(state["transform_steps"])
+            if state["mentor"] is not None:
+                self.mentor.load_state_dict(state["mentor"])
+
+    def _actor_state(self) -> dict:
+        return {"transform_steps": int(self.counters.frames) if self.transform is None else self.transform.total_steps,
+                "mentor": self.mentor.state_dict() if self.mentor is not None else None}
+
+    def start(self) -> None:
+        cfg, c = self.cfg, self.counters
+        self.updates0, self.update_seconds0 = c.updates, c.update_seconds
+        self.started = time.time()
+        self.next_eval = _next_multiple(c.frames, int(cfg.eval.every_frames))
+        self.next_ckpt = _next_multiple(c.frames, int(cfg.checkpoint.every_frames))
+        self.bar = tqdm(total=int(cfg.collector.total_frames), initial=int(c.frames), desc="PE-RLHF", unit="step")
+        self.updater.start()  # optim.async_updates: the learner thread (pe_rlhf.training.background_updates)
+
+    def collect(self) -> None:
+        remaining = int(self.cfg.collector.total_frames) - int(self.counters.frames)
+        if remaining <= 0:
+            return
+        self.collector = builders.build_collector(self.cfg, self.env, self.updater.policy, remaining,
+                                                  ensemble=self.ensemble, start_frames=int(self.counters.frames))
+        t_env = time.time()
+        for batch in self.collector:
+            self.counters.env_seconds += time.time() - t_env
+            if self.done:
+                break
+            self.process(batch)
+            t_env = time.time()
+
+    def process(self, batch, journaled: bool = False) -> None:
+        """One iteration on a batch: journal, buffers, ensemble fit, updates, log, eval, checkpoint."""
+        cfg, c = self.cfg, self.counters
+        if self.journal is not None and not journaled:  # on disk before anything else happens to it
+            self.journal.write(batch, int(c.frames), self._actor_state())
+        warmup = c.frames < int(cfg.collector.warmup_steps)
         m = batch_metrics(batch)
-        counters.add(m, warmup)
+        c.add(m, warmup)
         if warmup:
-            warmup_buffer.extend(ensemble_transitions(batch).reshape(-1))  # (N, T) with multisync: time last
+            self.warmup_buffer.extend(ensemble_transitions(batch).reshape(-1))  # (N, T) with multisync: time last
             batch = relabel_warmup(batch, keep_agent_action=bool(cfg.collector.warmup_gap))
             m["intervention_cost"] = 0.0  # forced mentor driving is no takeover: nothing is charged
-        with updater.lock:  # the learner thread samples from it
-            replay.extend(batch.reshape(-1))
-        fit_steps = schedule.due(int(counters.frames)) if ensemble is not None else 0
-        if fit_steps:
-            fit_q_ensemble(ensemble, warmup_buffer, steps=fit_steps, batch_size=int(cfg.selector.batch_size),
-                           gamma=float(cfg.loss.gamma), lr=float(cfg.selector.lr),
-                           target_noise=float(cfg.selector.target_noise), loss=str(cfg.selector.fit_loss),
-                           seed=int(cfg.seed))
-            ensemble.requires_grad_(False)
-            builders.push_ensemble_weights(collector, ensemble)
-        backlog = updater.backlog  # updates owed by earlier batches, not run yet: 0 while the learner keeps up
-        if counters.frames >= int(cfg.collector.learning_starts):
-            updater.notify_frames(int(m["steps"]))  # sync: the updates these frames pay for run here
-            losses = updater.latest_losses() or losses
-            builders.sync_policy(collector)
-        counters.updates = updates0 + updater.updates_done
-        counters.update_seconds = update_seconds0 + updater.update_seconds
-        metrics = iteration_log(counters, m, losses, started)
+        with self.updater.lock:  # the learner thread samples from it
+            self.replay.extend(batch.reshape(-1))
+        self._fit_ensemble()
+        backlog = self.updater.backlog  # updates owed by earlier batches, not run yet: 0 while the learner keeps up
+        if c.frames >= int(cfg.collector.learning_starts):
+            self.updater.notify_frames(int(m["steps"]))  # sync: the updates these frames pay for run here
+            self.losses = self.updater.latest_losses() or self.losses
+            if self.collector is not None:
+                builders.sync_policy(self.collector)
+        c.updates = self.updates0 + self.updater.updates_done
+        c.update_seconds = self.update_seconds0 + self.updater.update_seconds
+        metrics = iteration_log(c, m, self.losses, self.started)
         metrics["train/update_backlog"] = float(backlog)
-        metrics.update(pacing_log(pacing, int(m["steps"])))
-        if counters.frames >= next_eval:
-            next_eval = _next_multiple(counters.frames, int(cfg.eval.every_frames))
-            with updater.paused():
-                summary = evaluate_actor(actor, cfg, env_config, int(cfg.eval.episodes))
+        metrics.update(pacing_log(self.pacing, int(m["steps"])))
+        disconnects = int(getattr(self.mentor, "disconnects", 0) or 0)  # a person's window closed, pad unplugged
+        metrics["train/mentor_disconnects"] = float(disconnects)
+        if c.frames >= self.next_eval:
+            self.next_eval = _next_multiple(c.frames, int(cfg.eval.every_frames))
+            with self.updater.paused():
+                summary = evaluate_actor(self.actor, cfg, self.env_config, int(cfg.eval.episodes))
             for k in EVAL_KEYS:
                 metrics[f"eval/{k}_mean"], metrics[f"eval/{k}_std"] = summary[k]["mean"], summary[k]["std"]
-        logger.log(int(counters.frames), metrics)
-        bar.update(int(m["steps"]))
-        bar.set_postfix(takeover=f"{metrics['train/takeover_rate']:.2f}",
-                        violations=int(counters.safety_violations), succ=f"{metrics['train/success_rate_total']:.2f}")
-        if checkpoint_dir is not None and counters.frames >= next_ckpt:
-            next_ckpt = _next_multiple(counters.frames, int(cfg.checkpoint.every_frames))
-            with updater.paused():  # networks, optimisers and counters from one moment
-                counters.updates = updates0 + updater.updates_done
-                save_checkpoint(checkpoint_dir, step=int(counters.frames), keep=int(cfg.checkpoint.keep), **objects,
-                                state={"counters": counters.state_dict(), "schedule": schedule.state_dict(),
-                                       "mentor": mentor.state_dict() if mentor is not None else None,
-                                       "transform_steps": int(counters.frames) if transform is None
-                                       else transform.total_steps})
-        t_env = time.time()
-    updater.stop()  # async: the updates still owed run first, so the run keeps its update-to-data ratio
-    counters.updates = updates0 + updater.updates_done
-    counters.update_seconds = update_seconds0 + updater.update_seconds
-    bar.close()
-    if collector is not None:
-        builders.shutdown_collector(collector)
-    final = evaluate_actor(actor, cfg, env_config, int(cfg.eval.episodes))
-    final["training"] = counters.state_dict()
-    torch.save(actor.state_dict(), out_dir / "actor.pt")
-    if cfg.eval.video:
-        final["video"] = record_test_video(actor, cfg, env_config, out_dir / VIDEO_NAME)
-    return final
+        self.logger.log(int(c.frames), metrics)
+        self.bar.update(int(m["steps"]))
+        self.bar.set_postfix(takeover=f"{metrics['train/takeover_rate']:.2f}", violations=int(c.safety_violations),
+                             succ=f"{metrics['train/success_rate_total']:.2f}")
+        if self.checkpoint_dir is not None and (c.frames >= self.next_ckpt or disconnects > self.disconnects):
+            self.next_ckpt = _next_multiple(c.frames, int(cfg.checkpoint.every_frames))
+            with self.updater.paused():  # networks, optimisers and counters from one moment
+                self.save()
+        self.disconnects = disconnects
+
+    def _fit_ensemble(self) -> None:
+        cfg = self.cfg
+        fit_steps = self.schedule.due(int(self.counters.frames)) if self.ensemble is not None else 0
+        if not fit_steps:
+            return
+        fit_q_ensemble(self.ensemble, self.warmup_buffer, steps=fit_steps, batch_size=int(cfg.selector.batch_size),
+                       gamma=float(cfg.loss.gamma), lr=float(cfg.selector.lr),
+                       target_noise=float(cfg.selector.target_noise), loss=str(cfg.selector.fit_loss),
+                       seed=int(cfg.seed))
+        self.ensemble.requires_grad_(False)
+        if self.collector is not None:
+            builders.push_ensemble_weights(self.collector, self.ensemble)
+
+    def save(self) -> Path:
+        """A checkpoint of everything at the current frame count (call with the learner paused or stopped);
+        journal files it makes redundant are deleted."""
+        from pe_rlhf.training.checkpoint import save_checkpoint
+
+        c = self.counters
+        c.updates = self.updates0 + self.updater.updates_done
+        state = {"counters": c.state_dict(), "schedule": self.schedule.state_dict(), **self._actor_state(),
+                 "run": self.run_info()}
+        path = save_checkpoint(self.checkpoint_dir, step=int(c.frames), keep=int(self.cfg.checkpoint.keep),
+                               **self.objects, state=state)
+        self.saved_step = int(c.frames)
+        if self.journal is not None:
+            self.journal.prune(self.saved_step)
+        return path
+
+    def stop_on_error(self, error: FloatingPointError) -> FloatingPointError:
+        """Stop the learner, checkpoint what was collected (the updates stopped before the bad step),
+        and return the error to raise, saying where the checkpoint is."""
+        with contextlib.suppress(BaseException):  # the learner thread died of ``error`` already
+            self.updater.stop(finish=False)
+        self.bar.close()
+        if self.checkpoint_dir is None:
+            return FloatingPointError(f"{error} (no checkpoint directory: nothing saved)")
+        path = self.save()
+        return FloatingPointError(f"{error}. Saved checkpoint {path} (frame {int(self.counters.frames)}, every "
+                                  "collected transition included); fix the cause (e.g. a lower optim.lr) and --resume")
+
+    def shutdown_collector(self) -> None:
+        if self.collector is not None:
+            builders.shutdown_collector(self.collector)
+            self.collector = None
+
+    def finish(self, out_dir: Path) -> dict:
+        """Owed updates, a last checkpoint, the final evaluation, ``actor.pt`` (and the GIF)."""
+        c = self.counters
+        self.updater.stop()  # async: the updates still owed run first, so the run keeps its update-to-data ratio
+        c.updates = self.updates0 + self.updater.updates_done
+        c.update_seconds = self.update_seconds0 + self.updater.update_seconds
+        self.bar.close()
+        if self.checkpoint_dir is not None and c.frames > self.saved_step:
+            self.save()
+        final = evaluate_actor(self.actor, self.cfg, self.env_config, int(self.cfg.eval.episodes))
+        final["training"] = c.state_dict()
+        torch.save(self.actor.state_dict(), out_dir / "actor.pt")
+        if self.cfg.eval.video:
+            final["video"] = record_test_video(self.actor, self.cfg, self.env_config, out_dir / VIDEO_NAME)
+        return final
+
+
+def check_resumable(saved: dict | None, current: dict, checkpoint) -> None:
+    """Refuse a checkpoint trained under another env config (ValueError naming each field); warn when
+    another pe_rlhf version wrote it (the checkpoint format, checked on loading, is what must agree).
+    Checkpoints from before this record (``saved`` None) are taken as they are."""
+    if saved is None:
+        return
+    if saved.get("pe_rlhf_version") != current["pe_rlhf_version"]:
+        warnings.warn(f"{checkpoint} was written by pe_rlhf {saved.get('pe_rlhf_version')}, this is "
+                      f"{current['pe_rlhf_version']} (same checkpoint format: resuming)", stacklevel=3)
+    env, now = saved.get("env_config") or {}, current["env_config"]
+    bad = [f"env.{k}: checkpoint {env.get(k)!r}, now {v!r}" for k, v in now.items() if k in env and env[k] != v]
+    if bad:
+        raise ValueError(f"cannot resume from {checkpoint}: it was trained under another env config ("
+                         + "; ".join(bad) + "); resume with the run's own config.yaml values")

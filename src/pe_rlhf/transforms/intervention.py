@@ -19,12 +19,18 @@ Writes under ``next`` (step outputs, float32 / bool with a trailing dim of 1 for
 ``mentor_selected`` (1,)     the mentor's action was executed in a takeover (always in HACO and warm-up)
 ===========================  =========================================================
 
+A non-finite agent proposal (a diverged actor) is never executed: its NaN/inf entries become 0 (straight,
+coasting) for the mentor, the cost and the simulator, with a warning; the root ``action`` keeps it
+as proposed.
+
 Put it inside each worker's env factory (it drives the simulator of a single env). Mentor and physics
 receive the simulator: the ``DrivingEnv`` of a driving env, or the gymnasium env's ``unwrapped`` of any
 other TorchRL env over a gymnasium env (e.g. ``GymEnv("Pendulum-v1")``).
 """
 
 from __future__ import annotations
+
+import warnings
 
 import numpy as np
 import torch
@@ -40,11 +46,13 @@ ZERO_NORM = 1e-6
 
 
 def takeover_cost(agent_action: np.ndarray, executed_action: np.ndarray) -> float:
-    """``1 - cos(a_AV, a_exec)``, in [0, 2]; 1 when either action is (near) zero (no direction to compare)."""
+    """``1 - cos(a_AV, a_exec)``, in [0, 2]; 1 when either action is (near) zero or not finite (no
+    direction to compare)."""
     na, ne = float(np.linalg.norm(agent_action)), float(np.linalg.norm(executed_action))
-    if na < ZERO_NORM or ne < ZERO_NORM:
+    if not (ZERO_NORM <= na < np.inf and ZERO_NORM <= ne < np.inf):  # also False for NaN
         return 1.0
-    return float(1.0 - np.dot(agent_action, executed_action) / (na * ne))
+    cos = float(np.dot(agent_action, executed_action)) / (na * ne)
+    return float(1.0 - np.clip(cos, -1.0, 1.0))  # rounding can push |cos| a hair past 1
 
 
 class InterventionTransform(Transform):
@@ -123,6 +131,10 @@ class InterventionTransform(Transform):
         if agent_action.dim() != 1:
             raise ValueError(f"InterventionTransform drives one env; got action shape {tuple(agent_action.shape)}")
         a_av = agent_action.detach().cpu().numpy().astype(np.float32)
+        if not np.isfinite(a_av).all():
+            warnings.warn(f"InterventionTransform: the agent proposed {a_av.tolist()}; its non-finite entries "
+                          "are executed as 0", RuntimeWarning, stacklevel=2)
+            a_av = np.where(np.isfinite(a_av), a_av, np.float32(0.0))
         self._pending = self._decide(tensordict.get("observation"), a_av)
         tensordict.set("action", torch.as_tensor(self._pending["behavior_action"], dtype=agent_action.dtype))
         return tensordict

@@ -19,6 +19,8 @@ class HybridActionSelector(TensorDictModuleBase):
     writes ``hybrid_action`` ``(*B, A)`` and ``mentor_selected`` bool ``(*B, 1)``. Batched: the
     ensemble runs once on both actions (``2 * B`` rows, one vectorised call).
 
+    A non-finite action (NaN/inf entries) is never chosen over a finite one, whatever the ensemble says.
+
     ``epsilon_select`` defaults to the paper's table (0.5); the authors' code uses 1.5.
     ``variance_threshold`` (off by default) reproduces that code's escape: the mentor is also
     trusted when the ensemble's standard deviation on the physics action exceeds it (the
@@ -62,6 +64,9 @@ class HybridActionSelector(TensorDictModuleBase):
         chosen = advantage >= self.epsilon_select
         if self.variance_threshold is not None:
             chosen = chosen | (q_phy.std(0, unbiased=False) > self.variance_threshold)
+        finite_mentor = torch.isfinite(acts[: len(acts) // 2]).all(-1)
+        finite_phy = torch.isfinite(acts[len(acts) // 2:]).all(-1)
+        chosen = torch.where(finite_mentor != finite_phy, finite_mentor, chosen)
         if mentor_action.dim() == 1:
             chosen = chosen.squeeze(0)
         hybrid = torch.where(chosen.unsqueeze(-1), mentor_action, physics_action)

@@ -1,0 +1,41 @@
+"""Tiny training runs for the reliability tests: the smoke profile cut to a few seconds."""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[2]
+RECIPE = ROOT / "recipes" / "pe_rlhf" / "train.py"
+
+# 25-frame batches, warm-up 50, a checkpoint every 100 frames, no periodic evaluation, no video,
+# episodes of at most 50 steps, 2 updates per batch.
+TINY = ["profile=smoke", "env.horizon=50", "collector.frames_per_batch=25", "collector.warmup_steps=50",
+        "collector.learning_starts=25", "optim.updates_per_batch=2", "selector.warmup_fit_steps=10",
+        "eval.every_frames=0", "eval.episodes=1", "eval.video=false", "checkpoint.every_frames=100",
+        "checkpoint.keep=2"]
+
+
+def load_recipe():
+    spec = importlib.util.spec_from_file_location("pe_rlhf_recipe_reliability", RECIPE)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def train(out: Path, *overrides: str, resume: bool = False) -> dict:
+    """The recipe in this process (call with one torch thread for bit-identical updates)."""
+    argv = ["--resume", str(out), *overrides] if resume else [*TINY, *overrides, "--out", str(out)]
+    return load_recipe().main(argv)
+
+
+def start_training(out: Path, *overrides: str) -> subprocess.Popen:
+    """The recipe in a child process (one torch thread, headless), output to ``out/stdout.txt``."""
+    env = {**os.environ, "PYTHONPATH": str(ROOT / "src"), "SDL_VIDEODRIVER": "dummy", "OMP_NUM_THREADS": "1"}
+    out.mkdir(parents=True, exist_ok=True)
+    log = open(out.parent / f"{out.name}.log", "w")  # noqa: SIM115 - the child holds it
+    return subprocess.Popen([sys.executable, str(RECIPE), *TINY, *overrides, "--out", str(out)], cwd=ROOT, env=env,
+                            stdout=log, stderr=subprocess.STDOUT)

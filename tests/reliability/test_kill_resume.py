@@ -1,0 +1,108 @@
+"""SIGKILL at a random step, then ``--resume``: nothing collected is lost and the bookkeeping agrees.
+
+A child process trains (checkpoint every 100 frames, 25-frame batches) and is killed once its journal
+holds a randomly chosen number of batches past the checkpoint at 100. The run is resumed in this
+process up to the last journaled frame ``J``, and an uninterrupted run of the same config to ``J``
+is the reference: replay buffers, counters, networks, optimisers and RNG states must be identical.
+"""
+
+from __future__ import annotations
+
+import json
+import random
+import signal
+import time
+from pathlib import Path
+
+import pytest
+import torch
+from _runs import start_training, train
+
+from pe_rlhf.training.journal import BatchJournal
+
+pytestmark = [pytest.mark.usefixtures("one_thread"), pytest.mark.filterwarnings("ignore::UserWarning")]
+
+TIMING = ("env_seconds", "update_seconds")  # wall-clock bookkeeping: differs between any two runs
+
+
+def kill_when_journaled(out: Path, frames: int, timeout: float = 240.0) -> None:
+    proc = start_training(out, "collector.total_frames=300")
+    journal = out / "checkpoints" / "journal"
+    deadline = time.time() + timeout
+    try:
+        while time.time() < deadline and proc.poll() is None:
+            if journal.is_dir() and any(end >= frames for end, _ in BatchJournal(journal).files()):
+                proc.send_signal(signal.SIGKILL)
+                proc.wait()
+                return
+            time.sleep(0.01)
+        log = (out.parent / f"{out.name}.log").read_text()[-2000:]
+        pytest.fail(f"the child never journaled frame {frames} (rc {proc.poll()}):\n{log}")
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
+def checkpoint_contents(ckpt: Path) -> dict:
+    """Everything a checkpoint holds, loaded: tensors, RNG, state, the replay buffers' contents."""
+    from pe_rlhf.training.builders import build_replay_buffer
+    from pe_rlhf.training.checkpoint import load_checkpoint
+    from pe_rlhf.training.config import load_config
+
+    cfg = load_config(ckpt.parents[1] / "config.yaml", apply_profile=False)
+    buffers = {"replay": build_replay_buffer(cfg), "warmup": build_replay_buffer(cfg)}
+    load_checkpoint(ckpt, modules={}, optimizers={}, replay_buffers=buffers, strict=False, restore_rng_state=False)
+    out = {"tensors": torch.load(ckpt / "tensors.pt", weights_only=True),
+           "rng": torch.load(ckpt / "rng.pt", weights_only=True),
+           "state": json.loads((ckpt / "state.json").read_text())}
+    out.update({name: buffer[:] for name, buffer in buffers.items()})
+    for k in TIMING:
+        out["state"]["counters"].pop(k)
+    return out
+
+
+def assert_identical(a, b, where: str = "") -> None:
+    from tensordict import TensorDictBase
+
+    if isinstance(a, TensorDictBase):
+        assert a.batch_size == b.batch_size, where
+        assert set(a.keys(True, True)) == set(b.keys(True, True)), where
+        for key in a.keys(True, True):
+            assert torch.equal(a[key], b[key]), f"{where}.{key}"
+    elif isinstance(a, torch.Tensor):
+        assert torch.equal(a, b), where
+    elif isinstance(a, dict):
+        assert set(a) == set(b), (where, set(a) ^ set(b))
+        for k in a:
+            assert_identical(a[k], b[k], f"{where}.{k}")
+    elif isinstance(a, (list, tuple)):
+        assert len(a) == len(b), where
+        for i, (x, y) in enumerate(zip(a, b)):
+            assert_identical(x, y, f"{where}[{i}]")
+    else:
+        assert a == b, (where, a, b)
+
+
+def test_sigkill_then_resume_loses_no_batch_and_matches_an_uninterrupted_run(tmp_path):
+    target = random.SystemRandom().choice([125, 150, 175])  # the kill lands somewhere after this batch
+    killed = tmp_path / "killed"
+    kill_when_journaled(killed, target)
+    ckpts = killed / "checkpoints"
+    journaled = [end for end, _ in BatchJournal(ckpts / "journal").files()]
+    assert (ckpts / "ckpt_000000100" / "COMPLETE").is_file(), f"target {target}"
+    last = max(journaled)
+    assert last >= target and journaled == list(range(125, last + 1, 25)), (target, journaled)
+
+    final = train(killed, f"collector.total_frames={last}", resume=True)
+    assert final["training"]["frames"] == last  # every journaled batch is back, none collected twice
+    reference = train(tmp_path / "uninterrupted", f"collector.total_frames={last}")
+    assert reference["training"]["frames"] == last
+
+    resumed = checkpoint_contents(ckpts / f"ckpt_{last:09d}")
+    uninterrupted = checkpoint_contents(tmp_path / "uninterrupted" / "checkpoints" / f"ckpt_{last:09d}")
+    assert len(resumed["replay"]) == last and len(resumed["warmup"]) == 50
+    assert_identical(uninterrupted, resumed, f"killed after frame {target}")
+    rows = [line.split(",")[0] for line in (killed / "metrics.csv").read_text().splitlines()[1:]]
+    assert [int(float(r)) for r in rows] == list(range(25, last + 1, 25))  # the curve: no gap, no repeat
+    assert not list((ckpts / "journal").iterdir())  # the final checkpoint holds every batch now

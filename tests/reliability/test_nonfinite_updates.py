@@ -1,0 +1,110 @@
+"""NaN/inf in a loss term, a gradient or a parameter stops updates with a message naming it; the
+trainer saves a checkpoint of everything collected first."""
+
+from __future__ import annotations
+
+import copy
+
+import pytest
+import torch
+from _runs import train
+
+from pe_rlhf.objectives import PERLHFLoss
+from pe_rlhf.training import builders, steps
+from pe_rlhf.training.checkpoint import find_checkpoint, load_checkpoint
+from pe_rlhf.training.config import load_config
+
+pytestmark = [pytest.mark.usefixtures("one_thread"), pytest.mark.filterwarnings("ignore::UserWarning")]
+
+
+@pytest.fixture
+def learner():
+    cfg = load_config(overrides=["profile=smoke"])
+    actor = builders.build_actor(cfg)
+    loss, soft_update = builders.build_loss(cfg, actor)
+    optimizers = builders.build_optimizers(cfg, loss)
+    from pe_rlhf.objectives.perlhf import make_transitions
+
+    g = torch.Generator().manual_seed(0)
+    n, obs = 16, builders.obs_dim(cfg)
+    takeover = torch.rand(n, 1, generator=g) < 0.5
+    sample = make_transitions(torch.randn(n, obs, generator=g), torch.randn(n, obs, generator=g),
+                              torch.rand(n, 2, generator=g) * 2 - 1, torch.rand(n, 2, generator=g) * 2 - 1,
+                              takeover, takeover.clone(), torch.zeros(n, 1, dtype=torch.bool))
+    return loss, optimizers, soft_update, sample
+
+
+def params(loss) -> dict:
+    return copy.deepcopy({k: v.detach() for k, v in loss.state_dict().items()})
+
+
+def unchanged(before: dict, loss) -> bool:
+    return all(torch.equal(before[k], v) for k, v in loss.state_dict().items())
+
+
+def test_non_finite_loss_term_is_named_and_nothing_changes(learner, monkeypatch):
+    loss, optimizers, soft_update, sample = learner
+    real = PERLHFLoss.forward
+
+    def forward(self, td):
+        out = real(self, td)
+        out["loss_intervention_qvalue"] = out["loss_intervention_qvalue"] * float("inf")
+        return out
+
+    monkeypatch.setattr(PERLHFLoss, "forward", forward)
+    before = params(loss)
+    with pytest.raises(FloatingPointError, match="loss_intervention_qvalue is inf"):
+        steps.update(loss, optimizers, soft_update, sample, max_grad_norm=10.0)
+    assert unchanged(before, loss)
+
+
+@pytest.mark.parametrize("max_grad_norm", [10.0, None])
+def test_non_finite_gradient_names_the_optimizer_and_no_step_is_taken(learner, max_grad_norm):
+    loss, optimizers, soft_update, sample = learner
+    weight = next(iter(loss.actor_network_params.values(True, True)))
+    weight.register_hook(lambda g: torch.full_like(g, float("nan")))
+    before = params(loss)
+    with pytest.raises(FloatingPointError, match="gradient of optimizer 'actor' has norm nan"):
+        steps.update(loss, optimizers, soft_update, sample, max_grad_norm=max_grad_norm)
+    assert unchanged(before, loss)  # no optimizer stepped, targets untouched
+
+
+def test_non_finite_parameter_after_a_step_is_named(learner, monkeypatch):
+    loss, optimizers, soft_update, sample = learner
+    opt = optimizers["alpha"]
+    real_step = opt.step
+
+    def step(*a, **k):
+        real_step(*a, **k)
+        with torch.no_grad():
+            loss.log_alpha.fill_(float("inf"))
+
+    monkeypatch.setattr(opt, "step", step)
+    with pytest.raises(FloatingPointError, match=r"parameters \['log_alpha'\] became non-finite"):
+        steps.update(loss, optimizers, soft_update, sample, max_grad_norm=10.0)
+    assert steps.nonfinite_parameters(loss) == ["log_alpha"]
+
+
+def test_trainer_saves_a_checkpoint_then_stops_naming_the_term(tmp_path, monkeypatch):
+    """A NaN loss on the 5th update (the third batch of 25 frames, after 2 updates a batch from
+    frame 25): the run stops with the term named, after a checkpoint holding all 75 frames."""
+    real = PERLHFLoss.forward
+    calls = []
+
+    def forward(self, td):
+        out = real(self, td)
+        calls.append(1)
+        if len(calls) == 5:
+            out["loss_qvalue"] = out["loss_qvalue"] * float("nan")
+        return out
+
+    monkeypatch.setattr(PERLHFLoss, "forward", forward)
+    out = tmp_path / "run"
+    with pytest.raises(FloatingPointError, match=r"loss_qvalue is nan .*Saved checkpoint .*ckpt_000000075 \(frame 75"):
+        train(out, "collector.total_frames=200")
+    ckpt = find_checkpoint(out / "checkpoints")
+    assert ckpt.name == "ckpt_000000075"
+    cfg = load_config(out / "config.yaml", apply_profile=False)
+    replay = builders.build_replay_buffer(cfg)
+    state = load_checkpoint(ckpt, modules={}, optimizers={}, replay_buffers={"replay": replay}, strict=False)
+    assert len(replay) == 75 and state["counters"]["frames"] == 75 and state["counters"]["updates"] == 4
