@@ -110,7 +110,7 @@ def test_cpu_profile_changes_the_documented_fields():
     assert cpu.replay_buffer.batch_size == 256 < paper.replay_buffer.batch_size
     assert cpu.optim.updates_per_batch == 100  # the paper's update-to-data ratio is kept
     assert list(cpu.loss.hidden) == [256, 256]
-    assert (cpu.eval.episodes, cpu.eval.every_frames, cpu.eval.video) == (5, 10000, False)
+    assert (cpu.eval.episodes, cpu.eval.every_frames, cpu.eval.video) == (20, 10000, False)
     assert cpu.collector.total_frames == 30000
 
 
