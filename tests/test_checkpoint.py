@@ -22,6 +22,7 @@ from tensordict import TensorDict
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.objectives import SoftUpdate
 
+from _compare import assert_same
 from pe_rlhf.modules.networks import make_actor, make_qvalue
 from pe_rlhf.objectives.perlhf import PERLHFLoss, make_transitions
 from pe_rlhf.training import checkpoint as ck
@@ -81,22 +82,6 @@ class Run:
     def load(self, directory, **kw) -> dict:
         return load_checkpoint(directory, modules={"loss": self.loss}, optimizers=self.optimizers,
                                replay_buffers={"online": self.buffer}, **kw)
-
-
-def assert_same(a, b, where="") -> None:
-    """Exact (bitwise) equality of nested dicts/lists/tensors."""
-    if isinstance(a, torch.Tensor):
-        assert isinstance(b, torch.Tensor) and a.dtype == b.dtype and torch.equal(a, b), where
-    elif isinstance(a, dict):
-        assert isinstance(b, dict) and set(a) == set(b), (where, set(a) ^ set(b))
-        for k in a:
-            assert_same(a[k], b[k], f"{where}.{k}")
-    elif isinstance(a, (list, tuple)):
-        assert len(a) == len(b), where
-        for i, (x, y) in enumerate(zip(a, b)):
-            assert_same(x, y, f"{where}[{i}]")
-    else:
-        assert a == b, (where, a, b)
 
 
 def snapshot(run: Run) -> dict:

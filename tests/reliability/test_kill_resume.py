@@ -16,6 +16,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from _compare import assert_same
 from _runs import start_training, train
 
 from pe_rlhf.training.journal import BatchJournal
@@ -62,28 +63,6 @@ def checkpoint_contents(ckpt: Path) -> dict:
     return out
 
 
-def assert_identical(a, b, where: str = "") -> None:
-    from tensordict import TensorDictBase
-
-    if isinstance(a, TensorDictBase):
-        assert a.batch_size == b.batch_size, where
-        assert set(a.keys(True, True)) == set(b.keys(True, True)), where
-        for key in a.keys(True, True):
-            assert torch.equal(a[key], b[key]), f"{where}.{key}"
-    elif isinstance(a, torch.Tensor):
-        assert torch.equal(a, b), where
-    elif isinstance(a, dict):
-        assert set(a) == set(b), (where, set(a) ^ set(b))
-        for k in a:
-            assert_identical(a[k], b[k], f"{where}.{k}")
-    elif isinstance(a, (list, tuple)):
-        assert len(a) == len(b), where
-        for i, (x, y) in enumerate(zip(a, b)):
-            assert_identical(x, y, f"{where}[{i}]")
-    else:
-        assert a == b, (where, a, b)
-
-
 def test_sigkill_then_resume_loses_no_batch_and_matches_an_uninterrupted_run(tmp_path):
     target = random.SystemRandom().choice([125, 150, 175])  # the kill lands somewhere after this batch
     killed = tmp_path / "killed"
@@ -102,7 +81,7 @@ def test_sigkill_then_resume_loses_no_batch_and_matches_an_uninterrupted_run(tmp
     resumed = checkpoint_contents(ckpts / f"ckpt_{last:09d}")
     uninterrupted = checkpoint_contents(tmp_path / "uninterrupted" / "checkpoints" / f"ckpt_{last:09d}")
     assert len(resumed["replay"]) == last and len(resumed["warmup"]) == 50
-    assert_identical(uninterrupted, resumed, f"killed after frame {target}")
+    assert_same(uninterrupted, resumed, f"killed after frame {target}")
     rows = [line.split(",")[0] for line in (killed / "metrics.csv").read_text().splitlines()[1:]]
     assert [int(float(r)) for r in rows] == list(range(25, last + 1, 25))  # the curve: no gap, no repeat
     assert not list((ckpts / "journal").iterdir())  # the final checkpoint holds every batch now
