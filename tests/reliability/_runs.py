@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib.util
+import json
 import os
 import subprocess
 import sys
@@ -10,6 +11,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
 RECIPE = ROOT / "recipes" / "pe_rlhf" / "train.py"
+TIMING = ("env_seconds", "update_seconds")  # wall-clock bookkeeping: differs between any two runs
 
 # 25-frame batches, warm-up 50, a checkpoint every 100 frames, no periodic evaluation, no video,
 # episodes of at most 50 steps, 2 updates per batch.
@@ -39,3 +41,23 @@ def start_training(out: Path, *overrides: str) -> subprocess.Popen:
     log = open(out.parent / f"{out.name}.log", "w")  # noqa: SIM115 - the child holds it
     return subprocess.Popen([sys.executable, str(RECIPE), *TINY, *overrides, "--out", str(out)], cwd=ROOT, env=env,
                             stdout=log, stderr=subprocess.STDOUT)
+
+
+def checkpoint_contents(ckpt: Path) -> dict:
+    """Everything a checkpoint holds, loaded: tensors, RNG, state, the replay buffers' contents."""
+    import torch
+
+    from pe_rlhf.training.builders import build_replay_buffer
+    from pe_rlhf.training.checkpoint import load_checkpoint
+    from pe_rlhf.training.config import load_config
+
+    cfg = load_config(ckpt.parents[1] / "config.yaml", apply_profile=False)
+    buffers = {"replay": build_replay_buffer(cfg), "warmup": build_replay_buffer(cfg)}
+    load_checkpoint(ckpt, modules={}, optimizers={}, replay_buffers=buffers, strict=False, restore_rng_state=False)
+    out = {"tensors": torch.load(ckpt / "tensors.pt", weights_only=True),
+           "rng": torch.load(ckpt / "rng.pt", weights_only=True),
+           "state": json.loads((ckpt / "state.json").read_text())}
+    out.update({name: buffer[:] for name, buffer in buffers.items()})
+    for k in TIMING:
+        out["state"]["counters"].pop(k)
+    return out

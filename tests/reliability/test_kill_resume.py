@@ -8,22 +8,18 @@ is the reference: replay buffers, counters, networks, optimisers and RNG states 
 
 from __future__ import annotations
 
-import json
 import random
 import signal
 import time
 from pathlib import Path
 
 import pytest
-import torch
 from _compare import assert_same
-from _runs import start_training, train
+from _runs import checkpoint_contents, start_training, train
 
 from pe_rlhf.training.journal import BatchJournal
 
 pytestmark = [pytest.mark.usefixtures("one_thread"), pytest.mark.filterwarnings("ignore::UserWarning")]
-
-TIMING = ("env_seconds", "update_seconds")  # wall-clock bookkeeping: differs between any two runs
 
 
 def kill_when_journaled(out: Path, frames: int, timeout: float = 240.0) -> None:
@@ -43,24 +39,6 @@ def kill_when_journaled(out: Path, frames: int, timeout: float = 240.0) -> None:
         if proc.poll() is None:
             proc.kill()
             proc.wait()
-
-
-def checkpoint_contents(ckpt: Path) -> dict:
-    """Everything a checkpoint holds, loaded: tensors, RNG, state, the replay buffers' contents."""
-    from pe_rlhf.training.builders import build_replay_buffer
-    from pe_rlhf.training.checkpoint import load_checkpoint
-    from pe_rlhf.training.config import load_config
-
-    cfg = load_config(ckpt.parents[1] / "config.yaml", apply_profile=False)
-    buffers = {"replay": build_replay_buffer(cfg), "warmup": build_replay_buffer(cfg)}
-    load_checkpoint(ckpt, modules={}, optimizers={}, replay_buffers=buffers, strict=False, restore_rng_state=False)
-    out = {"tensors": torch.load(ckpt / "tensors.pt", weights_only=True),
-           "rng": torch.load(ckpt / "rng.pt", weights_only=True),
-           "state": json.loads((ckpt / "state.json").read_text())}
-    out.update({name: buffer[:] for name, buffer in buffers.items()})
-    for k in TIMING:
-        out["state"]["counters"].pop(k)
-    return out
 
 
 def test_sigkill_then_resume_loses_no_batch_and_matches_an_uninterrupted_run(tmp_path):
@@ -84,4 +62,6 @@ def test_sigkill_then_resume_loses_no_batch_and_matches_an_uninterrupted_run(tmp
     assert_same(uninterrupted, resumed, f"killed after frame {target}")
     rows = [line.split(",")[0] for line in (killed / "metrics.csv").read_text().splitlines()[1:]]
     assert [int(float(r)) for r in rows] == list(range(25, last + 1, 25))  # the curve: no gap, no repeat
-    assert not list((ckpts / "journal").iterdir())  # the final checkpoint holds every batch now
+    assert not BatchJournal(ckpts / "journal").files()  # the final checkpoint holds every batch now
+    # an episode that ended in the batch being collected at the kill stays pending for a longer run
+    assert all(start == last for start, *_ in BatchJournal(ckpts / "journal").pending_files())

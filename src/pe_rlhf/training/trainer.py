@@ -15,12 +15,16 @@ Phases, top to bottom in :func:`train`:
    ``checkpoint.every_frames``: a checkpoint (``--resume DIR`` continues from it).
 
 What a run survives: each collected batch is journaled (:mod:`pe_rlhf.training.journal`) before
-it is used, so ``--resume`` after a kill replays the batches since the checkpoint with the RNG
-states they arrived with and loses only the batch being collected; a non-finite loss, gradient or
-parameter stops updates with a ``FloatingPointError`` naming it, after a checkpoint of everything
-collected; a mentor's disconnect (a person's window closed, gamepad unplugged: ``disconnects``)
-triggers a checkpoint at the end of that batch; the run ends with a checkpoint of its last frame;
-``train/sim_errors_total`` counts episodes the simulator's faults ended (:mod:`pe_rlhf.envs.driving_env`).
+it is used, and with the ``single`` backend each episode that ends inside the batch being collected
+is written at once (:mod:`pe_rlhf.training.episode_journal`), so ``--resume`` after a kill replays
+the batches since the checkpoint with the RNG states they arrived with, then trains on the
+collected batch's steps up to its last finished episode as a short batch, and loses only the steps
+of the episode in progress since the batch began (multi-worker backends: the batch being collected);
+a non-finite loss, gradient or parameter stops updates with a ``FloatingPointError`` naming it,
+after a checkpoint of everything collected; a mentor's disconnect (a person's window closed,
+gamepad unplugged: ``disconnects``) triggers a checkpoint at the end of that batch; the run ends
+with a checkpoint of its last frame; ``train/sim_errors_total`` counts episodes the simulator's
+faults ended (:mod:`pe_rlhf.envs.driving_env`).
 
 ``collector.backend`` picks the collector (:func:`pe_rlhf.training.builders.build_collector`). With
 a multi-worker backend the workers own the envs, mentors and transforms, so a resume restarts the
@@ -35,6 +39,7 @@ import contextlib
 import time
 import warnings
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import torch
 from tqdm import tqdm
@@ -45,6 +50,9 @@ from pe_rlhf.threads import torch_threads
 from pe_rlhf.training import builders
 from pe_rlhf.training.steps import batch_metrics, ensemble_transitions, relabel_warmup
 from pe_rlhf.transforms import InterventionTransform, RealtimePacing
+
+if TYPE_CHECKING:
+    from pe_rlhf.training.journal import JournalEntry
 
 EVAL_KEYS = ("episodic_return", "success_rate", "safety_violation", "travel_distance", "travel_velocity",
              "overtake_count")
@@ -174,7 +182,7 @@ def _train(cfg, out_dir, logger, checkpoint_dir, resume: bool, update_threads: i
     from pe_rlhf.training.checkpoint import restore_rng
 
     run = _Run(cfg, logger, checkpoint_dir, update_threads)
-    journaled = run.resume() if resume else []
+    journaled, pending = run.resume() if resume else ([], None)
     try:
         run.start()
         for entry in journaled:  # the killed run's batches since its checkpoint, as it processed them
@@ -183,6 +191,10 @@ def _train(cfg, out_dir, logger, checkpoint_dir, resume: bool, update_threads: i
             restore_rng(entry.rng)
             run.process(entry.batch, journaled=True)
             run.restore_actors(entry.state)
+        if pending is not None and not run.done:  # its batch up to the last finished episode: a short batch
+            restore_rng(pending.rng)
+            run.restore_actors(pending.state)  # first: journaled with it, and a checkpoint in process() saves it
+            run.process(pending.batch)
         run.collect()
     except FloatingPointError as e:  # a non-finite loss, gradient or parameter: keep the data, then stop
         raise run.stop_on_error(e) from e
@@ -197,6 +209,7 @@ class _Run:
 
     def __init__(self, cfg, logger, checkpoint_dir: Path | None, update_threads: int):
         from pe_rlhf.training.config import driving_config
+        from pe_rlhf.training.episode_journal import PendingEpisodesJournal
         from pe_rlhf.training.journal import BatchJournal
 
         self.cfg, self.logger, self.checkpoint_dir = cfg, logger, checkpoint_dir
@@ -217,6 +230,10 @@ class _Run:
         self.pacing = builders.find_transform(self.env, RealtimePacing) if self.env is not None else None
         periodic = checkpoint_dir is not None and int(cfg.checkpoint.every_frames) > 0
         self.journal = BatchJournal(Path(checkpoint_dir) / "journal") if periodic else None
+        self.pending = None  # the single backend's episodes ended inside the batch being collected
+        if self.journal is not None and self.env is not None:
+            self.pending = PendingEpisodesJournal(self.journal, int(cfg.collector.frames_per_batch), self._actor_state)
+            self.env.append_transform(self.pending)  # last: it copies each step as the collector stores it
         self.updater = builders.build_updater(cfg, self.loss, self.optimizers, soft_update, self.replay, self.actor,
                                               update_threads)
         self.collector, self.losses, self.saved_step, self.disconnects = None, {}, -1, 0
@@ -231,8 +248,9 @@ class _Run:
 
         return {"pe_rlhf_version": __version__, "env_config": self.env_config.to_dict()}
 
-    def resume(self) -> list:
-        """Load the newest checkpoint; return the journal entries written after it."""
+    def resume(self) -> tuple[list[JournalEntry], JournalEntry | None]:
+        """Load the newest checkpoint; return the journal entries written after it, and the pending
+        file that continues them (None if there is none)."""
         from pe_rlhf.training.checkpoint import find_checkpoint, load_checkpoint
 
         state = load_checkpoint(self.checkpoint_dir, **self.objects)
@@ -242,7 +260,10 @@ class _Run:
         self.counters.load_state_dict(state["counters"])
         self.schedule.load_state_dict(state["schedule"])
         self.restore_actors(state)
-        return self.journal.entries_after(self.saved_step) if self.journal is not None else []
+        if self.journal is None:
+            return [], None
+        entries = self.journal.entries_after(self.saved_step)
+        return entries, self.journal.pending_at(entries[-1].end if entries else self.saved_step)
 
     def restore_actors(self, state: dict) -> None:
         """The transform's step count and the mentor's state (multi-worker backends restart theirs)."""
@@ -268,6 +289,8 @@ class _Run:
         remaining = int(self.cfg.collector.total_frames) - int(self.counters.frames)
         if remaining <= 0:
             return
+        if self.pending is not None:
+            self.pending.restart(int(self.counters.frames))
         self.collector = builders.build_collector(self.cfg, self.env, self.updater.policy, remaining,
                                                   ensemble=self.ensemble, start_frames=int(self.counters.frames))
         t_env = time.time()
@@ -283,6 +306,7 @@ class _Run:
         cfg, c = self.cfg, self.counters
         if self.journal is not None and not journaled:  # on disk before anything else happens to it
             self.journal.write(batch, int(c.frames), self._actor_state())
+            self.journal.discard_pending(int(c.frames))  # its pending files: the whole batch is in now
         warmup = c.frames < int(cfg.collector.warmup_steps)
         m = batch_metrics(batch)
         c.add(m, warmup)
