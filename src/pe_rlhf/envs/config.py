@@ -31,6 +31,7 @@ class DrivingConfig:
     policy_frequency: int = 10
     lidar_beams: int = 240
     lidar_range: float = 50.0
+    lane_features: bool = False
     active_radius: float = 150.0
     split: str | None = "train"
 
@@ -67,6 +68,8 @@ class DrivingConfig:
             bad("lidar_beams", "need lidar_beams >= 1 and lidar_range > 0")
         if self.active_radius <= self.lidar_range:
             bad("active_radius", "must exceed lidar_range so every perceived vehicle is simulated")
+        if not isinstance(self.lane_features, bool):
+            bad("lane_features", "must be true or false")
         if self.split not in (None, "train", "test"):
             bad("split", "must be 'train', 'test' or None")
 

@@ -106,7 +106,7 @@ class DrivingEnv(AbstractEnv):
 
     # -- spaces ---------------------------------------------------------------------------
     def define_spaces(self) -> None:
-        n = observation_size(self.world.lidar_beams)
+        n = observation_size(self.world.lidar_beams, self.world.lane_features)
         self.observation_space = gym.spaces.Box(-1.0, 1.0, (n,), dtype=np.float32)
         self.action_space = gym.spaces.Box(-1.0, 1.0, (2,), dtype=np.float32)
         self.action_type = None

@@ -1,6 +1,6 @@
 """The flat observation vector: ego state, navigation, ego-frame lidar.
 
-Layout of the float32 vector (length ``10 + beams``, 250 by default):
+Layout of the float32 vector (length ``10 + beams``, 250 by default; 270 with lane features):
 
 ====================  ==========================================================
 slice                 content
@@ -16,6 +16,8 @@ slice                 content
 ``[8:10]``            the checkpoint after it, same units
 ``[10:10+beams]``     lidar: beam ``i`` at ego heading + 2*pi*i/beams, distance to the
                       first vehicle or obstacle / 50 m, in [0, 1] (1 = nothing)
+``[10+beams:+20]``    only with ``DrivingConfig(lane_features=True)``: the per-lane summary
+                      of :mod:`pe_rlhf.envs.lane_summary`
 ====================  ==========================================================
 
 Road edges reach the agent through ``[4:6]``, not through the lidar (as in MetaDrive).
@@ -46,8 +48,11 @@ OBS_SLICES = {
 }
 
 
-def observation_size(beams: int) -> int:
-    return EGO_STATE_DIM + NAV_DIM + beams
+def observation_size(beams: int, lane_features: bool = False) -> int:
+    """The observation's length: ``10 + beams``, plus 20 with ``lane_features``."""
+    from pe_rlhf.envs.lane_summary import LANE_FEATURES
+
+    return EGO_STATE_DIM + NAV_DIM + beams + LANE_FEATURES * bool(lane_features)
 
 
 def road_edge_distances(network, lane_index, position: np.ndarray) -> tuple[float, float]:
@@ -90,4 +95,8 @@ def build_observation(env) -> np.ndarray:
     head[4:6] = np.clip(head[4:6], 0.0, 1.0)
     objects = [v for v in env.road.vehicles if v is not ego] + env.road.objects
     lidar = env.lidar.scan_objects(ego, objects)
+    if env.world.lane_features:
+        from pe_rlhf.envs.lane_summary import lane_features
+
+        return np.concatenate([head, lidar, lane_features(env, V_MAX)]).astype(np.float32)
     return np.concatenate([head, lidar]).astype(np.float32)

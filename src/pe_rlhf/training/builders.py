@@ -43,7 +43,7 @@ from pe_rlhf.objectives import PERLHFLoss
 from pe_rlhf.physics import IDMMobilPolicy
 from pe_rlhf.transforms import HybridActionSelector, InterventionTransform, RealtimePacing
 
-OBS_DIM = 250  # the default world's observation (240 lidar beams); obs_dim(cfg) follows env.lidar_beams
+OBS_DIM = 250  # the default world's observation (240 lidar beams); obs_dim(cfg) follows env.lidar_beams and env.lane_features
 # A worker's Q-ensemble seen from its collector, in TorchRL's attribute-path notation (cascade_execute);
 # make_worker_env checks that the InterventionTransform is the env's last transform.
 WORKER_ENSEMBLE_PATH = "env.transform[-1].selector.q_ensemble"
@@ -54,7 +54,8 @@ def obs_dim(cfg) -> int:
     from pe_rlhf.envs.observation import observation_size
     from pe_rlhf.training.config import driving_config
 
-    return observation_size(driving_config(cfg).lidar_beams)
+    world = driving_config(cfg)
+    return observation_size(world.lidar_beams, world.lane_features)
 
 
 def build_mentor(cfg, worker_index: int = 0) -> Mentor:
