@@ -1,0 +1,29 @@
+"""The paper's RL and safe-RL baselines on the driving env: SAC-RS, SAC-Lag, PPO-RS, PPO-Lag and CPO.
+
+Each is a recipe (``recipes/<method>/config.yaml`` + a two-line ``train.py``) over these shared parts:
+:mod:`~pe_rlhf.baselines.config` (defaults, profiles, validation), :mod:`~pe_rlhf.baselines.algorithms`
+(the learners: TorchRL's SAC/ClipPPO losses and pe_rlhf's SAC-Lag/PPO-Lag/CPO losses),
+:mod:`~pe_rlhf.baselines.episodes` (training episode bookkeeping), :mod:`~pe_rlhf.baselines.loop` (collect,
+learn, log, evaluate, checkpoint), :mod:`~pe_rlhf.baselines.plots` and :mod:`~pe_rlhf.baselines.cli`.
+"""
+
+from pe_rlhf.baselines.config import METHODS, Method, default_config, load_baseline_config, profiles
+from pe_rlhf.baselines.episodes import EpisodeTracker
+
+
+def load_baseline_actor(run_dir):
+    """The trained actor of a baseline run folder (see :func:`pe_rlhf.baselines.loop.load_baseline_actor`)."""
+    from pe_rlhf.baselines.loop import load_baseline_actor as load
+
+    return load(run_dir)
+
+
+def main(method: str, argv: list[str] | None = None) -> dict:
+    """Run ``recipes/<method>/train.py``'s command line (see :mod:`pe_rlhf.baselines.cli`)."""
+    from pe_rlhf.baselines.cli import main as cli_main
+
+    return cli_main(method, argv)
+
+
+__all__ = ["METHODS", "EpisodeTracker", "Method", "default_config", "load_baseline_actor", "load_baseline_config",
+           "main", "profiles"]
