@@ -6,7 +6,8 @@
 Outputs in the run folder: ``config.yaml`` (the resolved config), ``metrics.csv``, ``final_eval.json``
 (the six metrics on ``eval.split`` with deterministic actions, plus training totals),
 ``learning_curves.png`` (+ ``testing_curves.png`` with periodic evaluations), ``actor.pt`` and
-``checkpoints/``.
+``checkpoints/``; the imitation methods also ``demos/`` when ``data.path`` is null (the recorded
+demonstrations).
 """
 
 from __future__ import annotations
@@ -59,7 +60,8 @@ def main(method: str, argv: list[str] | None = None) -> dict:
         final = train_baseline(cfg, out, logger, checkpoint_dir=out / "checkpoints", resume=bool(args.resume))
     write_json(out / FINAL_EVAL, final)
     if lg.csv:
-        plot_baseline_curves(out / CSV_NAME, out, cfg.constraint.cost_limit if "constraint" in cfg else None)
+        plot_baseline_curves(out / CSV_NAME, out, cfg.constraint.cost_limit if "constraint" in cfg else None,
+                             steps_are_updates=METHODS[method].family == "offline")
     rows = [(name, final)]
     if args.compare:
         reference = evaluate_reference(args.compare, cfg)

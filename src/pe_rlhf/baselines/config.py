@@ -16,7 +16,10 @@ then :func:`validate_baseline_config`. Every group is closed (an unknown key fai
 
 Methods (:data:`METHODS`): ``sac_rs``, ``sac_lag`` (off-policy family ``sac``), ``ppo_rs``, ``ppo_lag``
 (family ``ppo``) and ``cpo``. "RS" is the env's shaped reward (spec §4) as it is; ``*_lag`` and ``cpo`` add
-the constraint ``mean episode cost <= constraint.cost_limit`` on the env's ``("next", "cost")``.
+the constraint ``mean episode cost <= constraint.cost_limit`` on the env's ``("next", "cost")``. The
+imitation baselines ``bc``, ``cql`` (family ``offline``), ``gail`` and ``hg_dagger``, ``iwr`` (family ``hil``,
+with a mentor in the loop) take their defaults, profiles and extra rules from
+:mod:`~pe_rlhf.baselines.imitation_config`; ``mentor.kwargs`` is open as in the PE-RLHF recipe.
 
 The paper's cost limit is 1 per episode, for MetaDrive's safe env, where an episode goes on after a
 collision and costs pile up. Here an episode ends at its first collision (:mod:`pe_rlhf.envs.driving_env`),
@@ -36,6 +39,7 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
+from pe_rlhf.baselines import imitation_config
 from pe_rlhf.training.config import (
     RECIPES_ENV_VAR,
     SPLITS,
@@ -74,7 +78,14 @@ METHODS: dict[str, Method] = {
     "ppo_rs": Method("PPO-RS", "ppo", False),
     "ppo_lag": Method("PPO-Lag", "ppo", True),
     "cpo": Method("CPO", "cpo", False),
+    # imitation, offline and human-in-the-loop (pe_rlhf.baselines.imitation_config)
+    "bc": Method("BC", "offline", False),
+    "cql": Method("CQL", "offline", False),
+    "gail": Method("GAIL", "gail", False),
+    "hg_dagger": Method("HG-DAgger", "hil", False),
+    "iwr": Method("IWR", "hil", False),
 }
+IMITATION_FAMILIES = ("offline", "gail", "hil")
 
 # The paper's appendix tables (SAC/SAC-Lag, PPO/PPO-Lag, CPO) where they give a value; every other
 # value is named "not in the paper" in the recipes' config.yaml, with where it comes from.
@@ -160,19 +171,21 @@ def _method(method: str) -> Method:
 def default_config(method: str) -> dict[str, Any]:
     """The paper's values for ``method`` as a plain dict (what ``recipes/<method>/config.yaml`` holds)."""
     m = _method(method)
-    cfg = {"method": method, **copy.deepcopy(_COMMON), **copy.deepcopy(_FAMILY[m.family])}
+    family = imitation_config.defaults(method) if m.family in IMITATION_FAMILIES else _FAMILY[m.family]
+    cfg = {"method": method, **copy.deepcopy(_COMMON), **copy.deepcopy(family)}
     if m.lagrangian:
         cfg["constraint"] = copy.deepcopy(_LAGRANGIAN[m.family])
         if m.family == "sac":
             cfg["loss"].update(_SAC_LAG_LOSS)
-    order = ["method", "seed", "profile", "env", "collector", "replay_buffer", "optim", "loss", "constraint",
-             "logger", "eval", "checkpoint"]
+    order = ["method", "seed", "profile", "env", "mentor", "data", "collector", "replay_buffer", "optim", "loss",
+             "discriminator", "constraint", "logger", "eval", "checkpoint"]
     return {k: cfg[k] for k in order if k in cfg}
 
 
 def profiles(method: str) -> dict[str, dict[str, Any]]:
     """``{profile name: overrides}`` for ``method`` (``paper``: none; ``cpu``: 30K env steps; ``smoke``: CI)."""
-    return copy.deepcopy(_PROFILES[_method(method).family])
+    family = _method(method).family
+    return imitation_config.profiles(method) if family in IMITATION_FAMILIES else copy.deepcopy(_PROFILES[family])
 
 
 def recipe_config_path(method: str) -> Path | None:
@@ -201,6 +214,8 @@ def load_baseline_config(method: str, path: str | Path | None = None, overrides=
     cfg = OmegaConf.create(default_config(method))
     OmegaConf.set_struct(cfg, True)
     OmegaConf.set_struct(cfg.env, False)
+    if "mentor" in cfg:
+        OmegaConf.set_struct(cfg.mentor.kwargs, False)
     path = Path(path) if path is not None else recipe_config_path(method)
     if path is not None:
         if not path.is_file():
@@ -247,6 +262,7 @@ RULES = {
     "logger.wandb_mode": _choice(*WANDB_MODES), "logger.wandb_project": _string, "logger.log_every": _int(1),
     "eval.every_frames": _int(0), "eval.episodes": _int(1), "eval.split": _choice(*SPLITS),
     "checkpoint.every_frames": _int(0), "checkpoint.keep": _int(1),
+    **imitation_config.RULES,
 }
 
 
@@ -255,7 +271,7 @@ def validate_baseline_config(cfg: DictConfig, method: str) -> None:
     fields that bound each other; raise :class:`ConfigError` naming the first bad field."""
     expected = set(_leaf_keys(default_config(method)))
     present = set(_leaf_keys(OmegaConf.to_container(cfg)))
-    for key in sorted(present - expected - {"env"}):
+    for key in sorted(present - expected - {"env", "mentor.kwargs"}):
         raise ConfigError(f"unknown config key {key!r} for {method}; known: {sorted(expected)}", key)
     for key in sorted(expected - {"env"}):
         value = OmegaConf.select(cfg, key, default=_MISSING)
@@ -276,11 +292,15 @@ _MISSING = object()
 def _check_relations(cfg: DictConfig, m: Method) -> None:
     from pe_rlhf.envs import scene_seeds
 
-    c = cfg.collector
     scenes = len(scene_seeds(str(cfg.eval.split)))
     if cfg.eval.episodes > scenes:
         raise _fail("eval.episodes", cfg.eval.episodes, f"must be <= {scenes}: one episode per scene of the "
                     f"{cfg.eval.split} split")
+    if m.family in IMITATION_FAMILIES:
+        imitation_config.check_relations(cfg, m.family)
+    if m.family == "offline":
+        return
+    c = cfg.collector
     if c.frames_per_batch > c.total_frames:
         raise _fail("collector.frames_per_batch", c.frames_per_batch,
                     f"must be <= collector.total_frames ({c.total_frames})")
@@ -291,7 +311,7 @@ def _check_relations(cfg: DictConfig, m: Method) -> None:
         if cfg.replay_buffer.batch_size > cfg.replay_buffer.size:
             raise _fail("replay_buffer.batch_size", cfg.replay_buffer.batch_size,
                         f"must be <= replay_buffer.size ({cfg.replay_buffer.size})")
-    elif cfg.optim.minibatch_size > c.frames_per_batch:
+    elif m.family in ("ppo", "cpo", "gail") and cfg.optim.minibatch_size > c.frames_per_batch:
         raise _fail("optim.minibatch_size", cfg.optim.minibatch_size,
                     f"must be <= collector.frames_per_batch ({c.frames_per_batch}): minibatches split each batch")
 

@@ -1,9 +1,12 @@
-"""The baselines' training loop, shared by the five recipes: collect a batch, learn, log, evaluate, checkpoint.
+"""The baselines' training loop, shared by the online recipes: collect a batch, learn, log, evaluate, checkpoint.
 
 Top to bottom in :meth:`BaselineRun.collect` / :meth:`BaselineRun.iteration`:
 
+0. a learner with a ``pretrain`` hook (HG-DAgger, IWR) fits on its demonstrations first (row at step 0);
 1. a TorchRL ``Collector`` runs the learner's stochastic actor on one env (``collector.frames_per_batch``
-   steps a batch, the env reward and ``("next", "cost")``), seeded from ``seed``;
+   steps a batch, the env reward and ``("next", "cost")``), seeded from ``seed``; a learner's ``make_env``
+   and ``exploration_type`` replace the plain env and random sampling (HG-DAgger, IWR: the mentor takes
+   over, the actor acts deterministically);
 2. :class:`~pe_rlhf.baselines.episodes.EpisodeTracker` records the episodes that ended (return, cost,
    success) and the cost window the constrained methods measure ``J_c`` on;
 3. the learner's ``learn`` (:mod:`pe_rlhf.baselines.algorithms`) does the method's update(s);
@@ -13,7 +16,8 @@ Top to bottom in :meth:`BaselineRun.collect` / :meth:`BaselineRun.iteration`:
    networks, optimisers, ``lambda``, the replay buffer, RNG states, counters), which ``--resume`` continues.
 
 The run ends with a checkpoint, the final evaluation and ``actor.pt`` (``weights_only`` loadable into
-:func:`pe_rlhf.modules.make_actor`).
+:func:`pe_rlhf.modules.make_actor`). The offline methods (BC, CQL) never collect: :func:`train_baseline`
+hands them to :mod:`pe_rlhf.baselines.offline`, which writes the same outputs.
 """
 
 from __future__ import annotations
@@ -59,11 +63,12 @@ def compact_copy(buffer: TensorDictReplayBuffer) -> TensorDictReplayBuffer:
 class BaselineRun:
     """One training run of ``cfg.method``: learner, tracker, counters, and the work done on each batch."""
 
-    def __init__(self, cfg, logger, checkpoint_dir: Path | None):
+    def __init__(self, cfg, logger, checkpoint_dir: Path | None, run_dir: Path | None = None):
         self.cfg, self.logger, self.checkpoint_dir = cfg, logger, checkpoint_dir
         self.method = method_of(cfg)
         self.env_config = driving_config(cfg)
-        self.learner = build_learner(cfg, obs_dim(cfg))
+        self.started = time.time()
+        self.learner = build_learner(cfg, obs_dim(cfg), run_dir)
         self.tracker = EpisodeTracker(int(cfg.constraint.window) if "constraint" in cfg else 10)
         self.frames, self.iterations, self.saved_step = 0, 0, -1
         self.seconds = {"env": 0.0, "update": 0.0, "eval": 0.0, "earlier_sessions": 0.0}
@@ -115,17 +120,28 @@ class BaselineRun:
     def wall_time(self) -> float:
         return self.seconds["earlier_sessions"] + time.time() - self.started
 
+    def pretrain(self) -> None:
+        """A learner with a ``pretrain`` hook (HG-DAgger, IWR: BC on the demonstrations) runs it before the first
+        batch of a fresh run; its columns make the row at step 0."""
+        if self.frames > 0 or not hasattr(self.learner, "pretrain"):
+            return
+        t_update = time.time()
+        with torch_threads(self.update_threads):
+            log = self.learner.pretrain()
+        self.seconds["update"] += time.time() - t_update
+        self.logger.log(0, {**log, "env_steps": 0, "wall_time": self.wall_time()})
+
     def collect(self) -> None:
-        self.started = time.time()
         remaining = self.total_frames - self.frames
         if remaining <= 0:
             return
         fpb = int(self.cfg.collector.frames_per_batch)
-        env = make_env(self.env_config)
+        # Learner hooks: the imitation learners collect with the mentor in the loop, deterministically.
+        env = self.learner.make_env(self.env_config) if hasattr(self.learner, "make_env") else make_env(self.env_config)
         env.set_seed(int(self.cfg.seed) + self.frames)  # a resumed run draws other scenes than its start did
         collector = Collector(env, self.learner.actor, frames_per_batch=fpb, total_frames=-(-remaining // fpb) * fpb,
-                              exploration_type=ExplorationType.RANDOM, auto_register_policy_transforms=False,
-                              **self.learner.collector_kwargs(self.frames))
+                              exploration_type=getattr(self.learner, "exploration_type", ExplorationType.RANDOM),
+                              auto_register_policy_transforms=False, **self.learner.collector_kwargs(self.frames))
         self.next_eval = _next_multiple(self.frames, int(self.cfg.eval.every_frames))
         self.next_ckpt = _next_multiple(self.frames, int(self.cfg.checkpoint.every_frames))
         self.bar = tqdm(total=self.total_frames, initial=self.frames, desc=self.method.name, unit="step")
@@ -166,7 +182,8 @@ class BaselineRun:
             self.logger.log(self.frames, log)
         self.bar.update(episodes.steps)
         postfix = {"ret": log.get("train/episode_return"), "viol": int(self.tracker.safety_violations),
-                   "succ": round(self.tracker.success_rate, 2), "lam": log.get("train/lambda")}
+                   "succ": round(self.tracker.success_rate, 2), "lam": log.get("train/lambda"),
+                   "takeover": log.get("train/takeover_rate")}
         self.bar.set_postfix({k: (round(v, 2) if isinstance(v, float) else v) for k, v in postfix.items()
                               if v is not None}, refresh=False)
         if self.checkpoint_dir is not None and self.frames >= self.next_ckpt:
@@ -194,6 +211,8 @@ class BaselineRun:
         final["training"] = {"env_steps": self.frames, "episodes": t.episodes, "safety_violations": t.safety_violations,
                              "success_rate": t.success_rate, "sim_errors": t.sim_errors,
                              "wall_time_s": self.wall_time(), **{f"{k}_s": v for k, v in self.seconds.items()}}
+        if hasattr(self.learner, "training_totals"):  # the imitation learners' mentor data and takeovers
+            final["training"].update(self.learner.training_totals())
         torch.save(self.learner.actor.state_dict(), Path(out_dir) / ACTOR_FILE)
         return final
 
@@ -217,9 +236,14 @@ def load_baseline_actor(run_dir: str | Path):
 
 def train_baseline(cfg, out_dir: Path, logger, checkpoint_dir: Path | None = None, resume: bool = False) -> dict:
     """Train ``cfg.method`` (a validated baseline config); returns the final evaluation summary dict."""
+    if method_of(cfg).family == "offline":
+        from pe_rlhf.baselines.offline import train_offline
+
+        return train_offline(cfg, out_dir, logger, checkpoint_dir, resume)
     torch.manual_seed(int(cfg.seed))
-    run = BaselineRun(cfg, logger, checkpoint_dir)
+    run = BaselineRun(cfg, logger, checkpoint_dir, Path(out_dir))
     if resume:
         run.resume()
+    run.pretrain()
     run.collect()
     return run.finish(out_dir)

@@ -1,8 +1,9 @@
 """A baseline run's learning curves from its ``metrics.csv`` (column names of :mod:`pe_rlhf.training.plots`).
 
 ``learning_curves.png``: training episode return and cost (the cost limit dashed), cumulative safety
-violations, training success rate, ``lambda`` (or CPO's constraint violation ``c = J_c - limit``) and the
-losses; ``testing_curves.png`` (:mod:`pe_rlhf.training.plots`' test panel) when periodic evaluations
+violations, training success rate, ``lambda`` (or CPO's constraint violation ``c = J_c - limit``; the
+imitation baselines: takeover rate, takeover data usage, the mentor's share of the data, GAIL's mean
+``D(s, a)`` on the policy's and the mentor's steps) and the losses; ``testing_curves.png`` (:mod:`pe_rlhf.training.plots`' test panel) when periodic evaluations
 were logged.
 """
 
@@ -35,14 +36,18 @@ LEARNING_PANEL = (
     (("train/episode_cost", "train/episode_cost_window"), "(b) episode cost (train)"),
     (("train/safety_violations_total",), "(c) training safety violations (total)"),
     (("train/success_rate_total", "eval/success_rate_mean"), "(d) success rate (train total, test)"),
-    (("train/lambda", "train/cpo_constraint_violation", "train/kl_coef"), "(e) lambda / CPO c / KL coef"),
+    (("train/lambda", "train/cpo_constraint_violation", "train/kl_coef", "train/takeover_rate",
+      "train/takeover_data_usage", "train/mentor_data_share", "train/d_policy", "train/d_expert"),
+     "(e) lambda / CPO c / KL coef / takeovers / GAIL D"),
 )
 
 
 def plot_baseline_curves(csv_path: str | os.PathLike, out_dir: str | os.PathLike,
-                         cost_limit: float | None = None) -> dict[str, Path]:
+                         cost_limit: float | None = None, steps_are_updates: bool = False) -> dict[str, Path]:
     """Write ``learning_curves.png`` (and ``testing_curves.png`` if eval columns exist) to ``out_dir``;
-    returns ``{"learning": path[, "testing": path]}``."""
+    returns ``{"learning": path[, "testing": path]}``. ``steps_are_updates``: the offline methods' rows are
+    counted in gradient updates (the titles say so; the shared axis label says environment steps)."""
+    unit = " (x: gradient updates, no env steps)" if steps_are_updates else ""
     columns, rows = read_metrics_csv(csv_path)
     out_dir = Path(out_dir)
     fig, axes = plt.subplots(2, 3, figsize=(15, 8), constrained_layout=True)
@@ -74,8 +79,8 @@ def plot_baseline_curves(csv_path: str | os.PathLike, out_dir: str | os.PathLike
         ax.legend(fontsize=8)
     else:
         _mark_missing(ax, f"{LOSS_PREFIX}*")
-    written = {"learning": _save(fig, axes, out_dir / LEARNING_PNG, "Training")}
+    written = {"learning": _save(fig, axes, out_dir / LEARNING_PNG, f"Training{unit}")}
     if any(_series(rows, f"{EVAL_PREFIX}{m}_mean")[0].size for m, _ in TESTING_PANEL):
         fig, axes = _testing_figure(rows, None, "baseline")
-        written["testing"] = _save(fig, axes, out_dir / TESTING_PNG, "Testing (test split, mean ± std)")
+        written["testing"] = _save(fig, axes, out_dir / TESTING_PNG, f"Testing (test split, mean ± std){unit}")
     return written
