@@ -65,3 +65,27 @@ def test_config_field_is_validated_and_sizes_the_networks():
         load_config(None, ["env.lane_features=maybe"])
     assert builders.obs_dim(load_config(None, ["env.lane_features=true"])) == 270
     assert builders.obs_dim(load_config(None, [])) == 250
+
+
+def test_evaluate_checkpoint_uses_the_runs_world(tmp_path):
+    """`pe-rlhf evaluate --checkpoint RUN` builds the run's world: a 270-input agent needs lane_features."""
+    import json
+
+    import torch
+    from omegaconf import OmegaConf
+
+    from pe_rlhf.cli import main
+    from pe_rlhf.training import builders
+    from pe_rlhf.training.config import load_config
+    from pe_rlhf.training.trained_policy import run_world
+
+    cfg = load_config(None, ["env.lane_features=true", "env.horizon=20", "loss.hidden=[8,8]"])
+    (tmp_path / "config.yaml").write_text(OmegaConf.to_yaml(cfg))
+    torch.save(builders.build_actor(cfg).state_dict(), tmp_path / "actor.pt")
+    assert run_world(tmp_path).lane_features and run_world(tmp_path).horizon == 20
+    out = tmp_path / "eval.json"
+    assert main(["evaluate", "--checkpoint", str(tmp_path), "--episodes", "1", "--no-progress",
+                 "--json", str(out)]) == 0
+    summary = json.loads(out.read_text())
+    assert summary["env_config"]["lane_features"] is True and summary["env_config"]["split"] == "test"
+    assert summary["episodes"] == 1 and summary["episodes_detail"][0]["steps"] <= 20

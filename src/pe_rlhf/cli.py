@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import ast
+import dataclasses
 import sys
 from dataclasses import fields
 from typing import Any, Callable, Sequence
@@ -26,11 +27,12 @@ def _literal(text: str) -> Any:
         return text  # bare words such as ``split=test`` stay strings
 
 
-def parse_config_overrides(pairs: Sequence[str]) -> DrivingConfig:
-    """``["key=value", ...]`` -> a validated DrivingConfig; raises ValueError naming the bad field."""
+def parse_config_overrides(pairs: Sequence[str], base: DrivingConfig | None = None) -> DrivingConfig:
+    """``["key=value", ...]`` on top of ``base`` (default: ``DrivingConfig()``) -> a validated
+    DrivingConfig; raises ValueError naming the bad field."""
     fields_by_name = {f.name: f for f in fields(DrivingConfig)}
-    defaults = DrivingConfig()
-    values: dict[str, Any] = {}
+    defaults = base or DrivingConfig()
+    values: dict[str, Any] = base.to_dict() if base is not None else {}
     for pair in pairs:
         key, sep, raw = pair.partition("=")
         key = key.strip()
@@ -45,9 +47,9 @@ def parse_config_overrides(pairs: Sequence[str]) -> DrivingConfig:
         elif isinstance(default, tuple) and isinstance(value, (str, list, tuple)):
             value = tuple(v.strip() for v in value.split(",")) if isinstance(value, str) else tuple(value)
         nullable = "None" in str(fields_by_name[key].type)
-        if not (isinstance(value, type(default)) and not isinstance(value, bool)) and not (
-            value is None and nullable
-        ):
+        same_type = isinstance(value, bool) if isinstance(default, bool) else (
+            isinstance(value, type(default)) and not isinstance(value, bool))
+        if not same_type and not (value is None and nullable):
             raise ValueError(f"--config-override {key}={raw!r}: expected {type(default).__name__}"
                              f"{' or None' if nullable else ''}, got {type(value).__name__}")
         values[key] = value
@@ -72,12 +74,15 @@ def run_evaluate(args: argparse.Namespace, parser: argparse.ArgumentParser) -> i
     from pe_rlhf.evaluation import evaluate, make_policy, print_summary, write_json
 
     try:
-        config = parse_config_overrides(args.config_override)
         seeds = _seeds(args)
+        config = parse_config_overrides(args.config_override)
         if args.checkpoint:
             from pe_rlhf.evaluation import TorchRLPolicyAdapter
-            from pe_rlhf.training.trained_policy import load_actor
+            from pe_rlhf.training.trained_policy import load_actor, run_world
 
+            # the run's own world (observation size, traffic, ...), then the command line's overrides
+            world = dataclasses.replace(run_world(args.checkpoint), split=args.split)
+            config = parse_config_overrides(args.config_override, world)
             policy, name = TorchRLPolicyAdapter(load_actor(args.checkpoint)), f"agent:{args.checkpoint}"
         else:
             policy, name = make_policy(args.policy, args.seed), args.policy

@@ -9,6 +9,17 @@ import torch
 from pe_rlhf.training import builders
 
 
+def run_world(run_dir: str | Path):
+    """The :class:`~pe_rlhf.envs.config.DrivingConfig` the run in ``run_dir`` trained in (its ``env`` group):
+    its agent must be evaluated with the same observation (``lane_features``, ``lidar_beams``)."""
+    from pe_rlhf.training.config import driving_config, load_config
+
+    run_dir = Path(run_dir)
+    if not (run_dir / "config.yaml").exists():
+        raise FileNotFoundError(f"{run_dir} is not a training run folder (no config.yaml)")
+    return driving_config(load_config(run_dir / "config.yaml", apply_profile=False))
+
+
 def load_actor(run_dir: str | Path):
     """The actor of the run in ``run_dir``: its final ``actor.pt`` if the run finished, else the actor in
     its newest checkpoint. Reads ``config.yaml`` for the network sizes; loads with ``weights_only=True``.
