@@ -520,3 +520,206 @@ def test_default_is_the_papers_single_intervention_critic():
     out = run(loss, make_batch())
     assert out["q_intervention"] == pytest.approx(0.7)
     assert out["loss_actor"].item() == pytest.approx(-1.0 * out["entropy"].item() - 0.0 + 0.7, rel=1e-5)
+
+
+# --------------------------------------------------------------------------- HAIM-DRL's disturbance critic
+
+DISTURBANCE_KEYS = ("loss_disturbance_qvalue", "q_disturbance")
+
+# make_loss(**kwargs) on make_batch(terminated=0.25), run(...) with seed 123, recorded from PERLHFLoss before
+# the disturbance option existed (commit 30efda3; the same on 1 and 2 threads).
+PREVIOUS_OUTPUTS = {
+    "twin intervention critic": ({}, {
+        "loss_qvalue": 1.0557410717010498, "loss_intervention_qvalue": 0.6804097890853882,
+        "loss_actor": -1.465947151184082, "loss_alpha": -0.0, "alpha": 1.0, "entropy": 1.1275405883789062,
+        "td_loss": 1.1043307781219482, "gap_loss": -0.04858972877264023, "q_behavior": 0.36768314242362976,
+        "q_agent": 0.36252516508102417, "q_intervention": 0.013107817620038986, "intervention_rate": 0.46875}),
+    "paper critic, hinge gap": ({"num_intervention_qvalue_nets": 1, "gap_margin": 0.5}, {
+        "loss_qvalue": 5.743241310119629, "loss_intervention_qvalue": 0.36178526282310486,
+        "loss_actor": -1.4858949184417725, "loss_alpha": -0.0, "alpha": 1.0, "entropy": 1.1275405883789062,
+        "td_loss": 1.1043307781219482, "gap_loss": 4.638910293579102, "q_behavior": 0.36768314242362976,
+        "q_agent": 0.36252516508102417, "q_intervention": -0.05703231692314148, "intervention_rate": 0.46875}),
+}
+
+
+def with_disturbance(batch: TensorDict, cost=None, seed: int = 4) -> TensorDict:
+    """``batch`` with a ``("next", "disturbance_cost")`` (random in [0, 1) on a third of the rows by default)."""
+    g = torch.Generator().manual_seed(seed)
+    if cost is None:
+        cost = torch.rand(*batch.shape, 1, generator=g) * (torch.rand(*batch.shape, 1, generator=g) < 1 / 3)
+    batch = batch.clone()
+    batch["next", "disturbance_cost"] = cost.expand(*batch.shape, 1).clone()
+    return batch
+
+
+def disturbance_loss(disturbance_qvalue=None, seed: int = 0, **kwargs) -> PERLHFLoss:
+    """``make_loss`` plus a disturbance critic built after the other networks (same ``seed``)."""
+    torch.manual_seed(seed)
+    actor = make_actor(OBS_DIM, ACTION_DIM, HIDDEN)
+    qvalue, intervention_qvalue = make_qvalue(OBS_DIM, ACTION_DIM, HIDDEN), make_qvalue(OBS_DIM, ACTION_DIM, HIDDEN)
+    disturbance_qvalue = disturbance_qvalue if disturbance_qvalue is not None else make_qvalue(OBS_DIM, ACTION_DIM,
+                                                                                              HIDDEN)
+    kwargs.setdefault("num_intervention_qvalue_nets", 2)
+    return PERLHFLoss(actor, qvalue, intervention_qvalue, disturbance_qvalue, **kwargs)
+
+
+@pytest.mark.parametrize("case", sorted(PREVIOUS_OUTPUTS))
+def test_without_a_disturbance_critic_the_outputs_are_the_previous_numbers(case):
+    kwargs, previous = PREVIOUS_OUTPUTS[case]
+    loss = make_loss(**kwargs)
+    assert not loss.has_disturbance_critic
+    assert not any("disturbance" in name for name, _ in loss.named_parameters())
+    # the key is ignored when there is no disturbance critic
+    for batch in (make_batch(terminated=0.25), with_disturbance(make_batch(terminated=0.25))):
+        out = run(loss, batch)
+        assert set(out.keys()) == set(previous)
+        for key, value in previous.items():
+            assert out[key].item() == pytest.approx(value, rel=1e-6, abs=1e-7), key
+
+
+def test_the_disturbance_critic_changes_nothing_but_the_actor_term():
+    """Same networks and seeds with and without the option: every other output is bit-identical, and the
+    actor loss gains exactly ``disturbance_weight * min_k Q_dist_k``."""
+    batch = with_disturbance(make_batch(terminated=0.25))
+    off = make_loss(seed=0)
+    on = disturbance_loss(critic(ConstantQ(0.0)), seed=0, disturbance_weight=2.5)
+    set_online(on.disturbance_qvalue_network_params, "value", [0.4, 0.3])
+    a, b = run(off, batch), run(on, batch)
+    assert set(b.keys()) == set(a.keys()) | set(DISTURBANCE_KEYS)
+    for key in a.keys():  # noqa: SIM118 (iterating a TensorDict walks its batch dim, not its keys)
+        if key != "loss_actor":
+            assert torch.equal(a[key], b[key]), key
+    assert b["loss_actor"].item() == pytest.approx(a["loss_actor"].item() + 2.5 * 0.3, rel=1e-6)
+    assert b["q_disturbance"] == pytest.approx(0.35)
+
+
+def test_disturbance_outputs_and_gradient_routing():
+    loss = disturbance_loss()
+    groups = set(PARAM_GROUPS) | {"disturbance_qvalue_network_params"}
+    assert {name.split(".")[0] for name, _ in loss.named_parameters()} == groups
+    assert loss.disturbance_qvalue_network_params.get(("module", "mlp", "0", "weight")).shape[0] == 2  # a twin
+    batch = with_disturbance(make_batch())
+    for key, group in (("loss_disturbance_qvalue", "disturbance_qvalue_network_params"),
+                       ("loss_actor", "actor_network_params"), ("loss_qvalue", "qvalue_network_params")):
+        for p in loss.parameters():
+            p.grad = None
+        out = run(loss, batch)
+        assert out[key].requires_grad and not out["q_disturbance"].requires_grad
+        out[key].backward()
+        got = grad_groups(loss)
+        assert all(got[group]), key
+        assert not any(any(got[other]) for other in groups - {group}), f"{key} leaked a gradient"
+
+
+def test_disturbance_target_is_the_cost_plus_the_discounted_target_critic():
+    start = (torch.arange(BATCH) % 3 == 0).unsqueeze(-1)
+    terminated = (torch.arange(BATCH) % 2 == 0).unsqueeze(-1)
+    cost = torch.rand(BATCH, 1, generator=torch.Generator().manual_seed(7))
+    batch = with_disturbance(make_batch(intervention=start, terminated=terminated), cost)
+    gamma = 0.8
+    loss = disturbance_loss(critic(ConstantQ(2.0)), gamma=gamma)  # targets stay at 2
+    set_online(loss.disturbance_qvalue_network_params, "value", [1.0, 3.0])
+    out = run(loss, batch)
+    target = cost.squeeze(-1) + gamma * 2.0 * (~terminated.squeeze(-1)).float()
+    expected = 0.5 * sum(((d - target) ** 2).mean() for d in (1.0, 3.0))
+    assert out["loss_disturbance_qvalue"].item() == pytest.approx(expected.item(), rel=1e-6)
+
+
+def test_disturbance_critic_is_trained_on_the_executed_action():
+    loss = disturbance_loss()
+    batch = with_disturbance(make_batch(intervention=0.5))
+    base = run(loss, batch)["loss_disturbance_qvalue"]
+    for key, should_change in ((("next", "behavior_action"), True), ("action", False)):
+        other = batch.clone()
+        other[key] = -other[key]
+        assert (not torch.equal(run(loss, other)["loss_disturbance_qvalue"], base)) == should_change, key
+
+
+@pytest.mark.parametrize("kwargs, field", [({"disturbance_weight": -1.0}, "disturbance_weight"),
+                                           ({"disturbance_weight": math.nan}, "disturbance_weight"),
+                                           ({"num_disturbance_qvalue_nets": 0}, "num_disturbance_qvalue_nets")])
+def test_invalid_disturbance_arguments_name_the_field(kwargs, field):
+    with pytest.raises(ValueError, match=field):
+        disturbance_loss(**kwargs)
+
+
+def test_soft_update_reaches_the_disturbance_targets():
+    loss = disturbance_loss(critic(ConstantQ(0.0)))
+    updater = SoftUpdate(loss, tau=0.5)
+    set_online(loss.disturbance_qvalue_network_params, "value", [4.0, 2.0])
+    updater.step()
+    torch.testing.assert_close(loss.target_disturbance_qvalue_network_params.get(("module", "value")),
+                               torch.tensor([2.0, 1.0]))
+
+
+def test_disturbance_critic_converges_to_the_discounted_cost_of_a_chain(one_thread):
+    """A deterministic chain s_0 -> ... -> s_4 (terminal), one-hot states, costs c = (0, .5, 0, 1, 0) whatever
+    the action: ``Q_dist(s_i, a)`` must reach ``V_i = sum_j gamma^(j-i) c_j``."""
+    n, gamma = 5, 0.9
+    costs = torch.tensor([0.0, 0.5, 0.0, 1.0, 0.0])
+    values = torch.zeros(n)
+    for i in reversed(range(n)):
+        values[i] = costs[i] + (gamma * values[i + 1] if i + 1 < n else 0.0)
+    eye = torch.eye(n)  # the chain's observations
+    torch.manual_seed(0)
+    hidden = (64, 64)
+    loss = PERLHFLoss(make_actor(n, ACTION_DIM, hidden), make_qvalue(n, ACTION_DIM, hidden),
+                      make_qvalue(n, ACTION_DIM, hidden), make_qvalue(n, ACTION_DIM, hidden), gamma=gamma)
+    optim = torch.optim.Adam(loss.disturbance_qvalue_network_params.flatten_keys().values(), lr=3e-3)
+    updater = SoftUpdate(loss, tau=0.05)
+    reps = 16
+    states = eye.repeat(reps, 1)
+    next_states = torch.cat([eye[1:], eye[:1]]).repeat(reps, 1)  # s_4's successor is unused: terminal
+    terminated = (torch.arange(n) == n - 1).repeat(reps).unsqueeze(-1)
+    no = torch.zeros(n * reps, 1, dtype=torch.bool)
+    for _ in range(300):  # measured: max error 0.009 after 300 updates, 0.004 after 600
+        actions = torch.rand(n * reps, ACTION_DIM) * 2 - 1
+        batch = make_transitions(states, next_states, actions, actions, no, no, terminated,
+                                 disturbance_cost=costs.repeat(reps).unsqueeze(-1))
+        out = loss(batch)
+        optim.zero_grad()
+        out["loss_disturbance_qvalue"].backward()
+        optim.step()
+        updater.step()
+    test_actions = torch.rand(n, 32, ACTION_DIM) * 2 - 1
+    with torch.no_grad():
+        learned = loss._q("q_dist", loss.disturbance_qvalue_network_params,
+                          TensorDict({"observation": eye.unsqueeze(1).expand(n, 32, n)}, [n, 32]),
+                          test_actions).min(0)[0].mean(-1)
+    torch.testing.assert_close(learned, values, atol=0.03, rtol=0.0)
+
+
+def test_actor_moves_away_from_actions_the_disturbance_critic_charges(one_thread):
+    """``Q_dist(s, a) = 2 * max(-a[1], 0)`` (braking is charged), proxy Q and Q_int constant: with a
+    disturbance weight the policy stops proposing braking; without one it keeps its spread."""
+
+    class BrakingCost(nn.Module):
+        def forward(self, observation, action):
+            return 2.0 * (-action[..., 1:]).clamp(min=0)
+
+    obs = torch.randn(256, OBS_DIM, generator=torch.Generator().manual_seed(3))
+
+    def braking_share(loss: PERLHFLoss) -> float:
+        torch.manual_seed(9)
+        return (actor_action(loss, obs.repeat(8, 1), ExplorationType.RANDOM)[:, 1] < 0).float().mean().item()
+
+    def train_actor(weight: float) -> tuple[float, float]:
+        torch.manual_seed(2)
+        loss = PERLHFLoss(make_actor(OBS_DIM, ACTION_DIM, HIDDEN), critic(ConstantQ(0.0)), critic(ConstantQ(0.0)),
+                          critic(BrakingCost()), disturbance_weight=weight, alpha_init=0.05, fixed_alpha=True)
+        optim = torch.optim.Adam(loss.actor_network_params.flatten_keys().values(), lr=3e-3)
+        before = braking_share(loss)
+        for _ in range(100):
+            batch = with_disturbance(make_batch(batch=256, seed=5), torch.zeros(256, 1))
+            batch["observation"] = obs
+            out = loss(batch)
+            optim.zero_grad()
+            out["loss_actor"].backward()
+            optim.step()
+        return before, braking_share(loss)
+
+    before, charged = train_actor(1.0)
+    _, free = train_actor(0.0)
+    assert 0.3 < before < 0.7, before
+    assert charged < 0.1, (before, charged)
+    assert free > 0.3, free

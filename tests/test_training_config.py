@@ -26,8 +26,9 @@ from pe_rlhf.training.config import (
 )
 
 RECIPE_YAML = Path(__file__).resolve().parents[1] / "recipes" / "pe_rlhf" / "config.yaml"
-GROUPS = ("env", "mentor", "physics", "selector", "collector", "replay_buffer", "optim", "loss", "logger", "eval",
-          "checkpoint")
+HAIM_DRL_YAML = Path(__file__).resolve().parents[1] / "recipes" / "haim_drl" / "config.yaml"
+GROUPS = ("env", "mentor", "physics", "selector", "collector", "replay_buffer", "optim", "loss", "disturbance",
+          "logger", "eval", "checkpoint")
 
 
 def leaves(d: dict, prefix: str = "") -> dict:
@@ -208,6 +209,12 @@ INVALID = [
     ("loss.alpha_init", "0"),
     ("loss.hidden", "[]"),
     ("loss.cosine_cost", "2"),
+    ("loss.disturbance_weight", "-1"),
+    ("loss.num_disturbance_qvalue_nets", "0"),
+    ("disturbance.enabled", "maybe"),
+    ("disturbance.threshold", "0"),
+    ("disturbance.horizon", "-2"),
+    ("disturbance.follower_range", "nan"),
     ("logger.wandb_mode", "cloud"),
     ("logger.log_every", "0"),
     ("eval.episodes", "0"),
@@ -276,6 +283,21 @@ def test_method_names():
     haco = load_config(overrides=["selector.enabled=false", "physics.enabled=false"])
     assert method_name(haco) == "HACO"
     assert method_name(load_config(overrides=["selector.num_members=1"])) == "PE-RLHF"  # w/o ensemble ablation
+    assert method_name(load_config(overrides=["selector.enabled=false", "physics.enabled=false",
+                                              "disturbance.enabled=true"])) == "HAIM-DRL"
+    assert method_name(load_config(overrides=["disturbance.enabled=true"])) == "PE-RLHF+disturbance"
+
+
+def test_haim_drl_recipe_is_haco_with_the_disturbance_cost():
+    cfg = load_config(HAIM_DRL_YAML)
+    assert method_name(cfg) == "HAIM-DRL"
+    changed = {k: v for k, v in leaves(to_container(cfg)).items() if leaves(DEFAULTS)[k] != v}
+    assert changed == {"physics.enabled": False, "selector.enabled": False, "disturbance.enabled": True}
+    assert (cfg.disturbance.threshold, cfg.disturbance.horizon) == (5.0, 3.0)  # HAIM-DRL's 5 m/s^2
+    assert (cfg.loss.disturbance_weight, cfg.loss.num_disturbance_qvalue_nets) == (1.0, 2)  # its own twin critic
+    smoke = load_config(HAIM_DRL_YAML, ["profile=smoke", "loss.disturbance_weight=0.5"])
+    assert smoke.collector.total_frames == 300 and smoke.loss.disturbance_weight == 0.5
+    assert not load_config().disturbance.enabled  # PE-RLHF (and HACO) stay without it
 
 
 def test_selector_without_physics_is_an_error():

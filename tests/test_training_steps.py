@@ -70,3 +70,12 @@ def test_batch_metrics_counts():
     assert m["steps"] == 6 and m["takeover_steps"] == 6 and m["takeover_starts"] == 1
     assert m["mentor_chosen_steps"] == 6 and m["episodes"] == 2 and m["successes"] == 2
     assert abs(m["intervention_cost"] - 0.7) < 1e-6
+
+
+def test_batch_metrics_sum_the_disturbance_cost_only_when_the_batch_has_it():
+    batch = _batch(t=6)
+    assert "disturbance_cost" not in batch_metrics(batch)  # PE-RLHF / HACO: no such column
+    cost = torch.zeros(6, 1)
+    cost[1], cost[4] = 0.25, 0.5
+    batch.set(("next", "disturbance_cost"), cost)
+    assert abs(batch_metrics(batch)["disturbance_cost"] - 0.75) < 1e-6

@@ -17,12 +17,21 @@ One update reads a batch of transitions ``(s, a_AV, a_exec, I, I_start, C_int, s
   action (the paper's equation; ``intervention_critic_action="behavior"`` trains on the executed
   action instead) and ``C = I_start * (1 - cos(a_AV, a_exec))`` (or ``I_start`` with
   ``cosine_cost=False``).
-- ``loss_actor``: ``alpha * log pi(a|s) - psi * min_k Q_k(s, a) + beta * min_k Q_int_k(s, a)``.
+- ``loss_actor``: ``alpha * log pi(a|s) - psi * min_k Q_k(s, a) + beta * min_k Q_int_k(s, a)``
+  (``+ disturbance_weight * min_k Q_dist_k(s, a)`` with a disturbance critic).
+- ``loss_disturbance_qvalue`` (only with a ``disturbance_qvalue_network``: HAIM-DRL): twin critics of
+  the traffic-disturbance cost ``C_dist`` (``("next", "disturbance_cost")``, written by
+  :class:`~pe_rlhf.transforms.TrafficDisturbanceCost`),
+  ``Q_dist(s, a_exec) <- C_dist + gamma * (1 - terminated) * min_k Q_dist'_k(s', a')``, ``a' ~ pi(s')``
+  (the same ``a'`` as the proxy-Q target). It is trained on the executed action, the one that braked.
 - ``loss_alpha``: SAC's temperature loss towards ``target_entropy``.
 - diagnostics (detached): ``alpha``, ``entropy``, ``td_loss``, ``gap_loss``, ``q_behavior``, ``q_agent``
-  (0 when the batch has no takeover), ``q_intervention``, ``intervention_rate``.
+  (0 when the batch has no takeover), ``q_intervention``, ``intervention_rate``; with a disturbance
+  critic also ``q_disturbance`` (mean ``Q_dist`` at the executed actions).
 
-HACO is the same loss fed by an intervention transform without physics or selector.
+HACO is the same loss fed by an intervention transform without physics or selector; HAIM-DRL is HACO
+with a disturbance critic. Without one (the default) nothing of it is built or computed: PE-RLHF's and
+HACO's outputs are the same numbers as before the option existed.
 """
 
 from __future__ import annotations
@@ -57,6 +66,8 @@ class PERLHFLoss(LossModule):
         qvalue_network: a ``TensorDictModule`` reading ``observation`` and ``action``, writing
             ``state_action_value``; copied into ``num_qvalue_nets`` critics with target networks.
         intervention_qvalue_network: the same for the intervention value ``Q_int`` (its own copies).
+        disturbance_qvalue_network: optional, the same for HAIM-DRL's traffic-disturbance value
+            ``Q_dist`` (``num_disturbance_qvalue_nets`` copies with target networks); None (default) = off.
 
     Keyword Args:
         gap_coef: weight of the CQL-style gap (the authors' code uses 10).
@@ -70,11 +81,14 @@ class PERLHFLoss(LossModule):
         num_intervention_qvalue_nets: copies of ``Q_int``. 1 (default) is the paper's single intervention
             value function (parameters omega in its Algorithm 1); 2 is the authors' code (a twin, min
             over both), ~20% more time per update.
+        disturbance_weight: the actor's weight on ``Q_dist`` (used with a disturbance critic).
+        num_disturbance_qvalue_nets: copies of ``Q_dist`` (default 2, a twin: HAIM-DRL's own twin critic).
 
     Default keys (``set_keys`` overrides): root ``observation`` (via the networks' in_keys),
     ``action`` = the agent's proposal ``a_AV`` float ``(..., A)``; under ``next`` (step outputs of the
     intervention transform): ``behavior_action`` ``(..., A)``, ``intervention`` and
-    ``intervention_start`` bool ``(..., 1)``, ``intervention_cost`` float ``(..., 1)``, and the usual
+    ``intervention_start`` bool ``(..., 1)``, ``intervention_cost`` float ``(..., 1)``,
+    ``disturbance_cost`` float ``(..., 1)`` (read only with a disturbance critic), and the usual
     ``reward``, ``done``, ``terminated`` ``(..., 1)``. Any batch shape (flattened to one dim); the input
     tensordict is read, never written.
     """
@@ -86,6 +100,7 @@ class PERLHFLoss(LossModule):
         intervention: NestedKey = ("next", "intervention")
         intervention_start: NestedKey = ("next", "intervention_start")
         intervention_cost: NestedKey = ("next", "intervention_cost")
+        disturbance_cost: NestedKey = ("next", "disturbance_cost")
         state_action_value: NestedKey = "state_action_value"
         reward: NestedKey = "reward"
         done: NestedKey = "done"
@@ -102,12 +117,16 @@ class PERLHFLoss(LossModule):
     intervention_qvalue_network_params: TensorDictParams
     target_qvalue_network_params: TensorDictParams
     target_intervention_qvalue_network_params: TensorDictParams
+    disturbance_qvalue_network: TensorDictModule  # only with a disturbance critic
+    disturbance_qvalue_network_params: TensorDictParams
+    target_disturbance_qvalue_network_params: TensorDictParams
 
     def __init__(
         self,
         actor_network: ProbabilisticTensorDictSequential,
         qvalue_network: TensorDictModule,
         intervention_qvalue_network: TensorDictModule,
+        disturbance_qvalue_network: TensorDictModule | None = None,
         *,
         num_qvalue_nets: int = 2,
         num_intervention_qvalue_nets: int = 1,
@@ -123,13 +142,15 @@ class PERLHFLoss(LossModule):
         fixed_alpha: bool = False,
         target_entropy: float | str = "auto",
         action_dim: int | None = None,
+        disturbance_weight: float = 1.0,
+        num_disturbance_qvalue_nets: int = 2,
     ) -> None:
         super().__init__()
         if intervention_critic_action not in INTERVENTION_CRITIC_ACTIONS:
             raise ValueError(f"intervention_critic_action={intervention_critic_action!r}; "
                              f"allowed: {list(INTERVENTION_CRITIC_ACTIONS)}")
         for name, value in (("gamma", gamma), ("gap_coef", gap_coef), ("psi", psi),
-                            ("intervention_weight", intervention_weight)):
+                            ("intervention_weight", intervention_weight), ("disturbance_weight", disturbance_weight)):
             if not math.isfinite(value) or value < 0 or (name == "gamma" and value > 1):
                 raise ValueError(f"PERLHFLoss {name}={value} is invalid: must be finite and >= 0"
                                  + (" and <= 1" if name == "gamma" else ""))
@@ -139,7 +160,8 @@ class PERLHFLoss(LossModule):
         if not (math.isfinite(alpha_init) and alpha_init > 0):  # log(alpha_init) is the parameter
             raise ValueError(f"PERLHFLoss alpha_init={alpha_init} is invalid: must be finite and > 0")
         for name, value in (("num_qvalue_nets", num_qvalue_nets),
-                            ("num_intervention_qvalue_nets", num_intervention_qvalue_nets)):
+                            ("num_intervention_qvalue_nets", num_intervention_qvalue_nets),
+                            ("num_disturbance_qvalue_nets", num_disturbance_qvalue_nets)):
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"PERLHFLoss {name}={value!r} is invalid: must be an int >= 1")
         if target_entropy != "auto" and (isinstance(target_entropy, (str, bool))
@@ -169,10 +191,19 @@ class PERLHFLoss(LossModule):
             self.register_buffer("log_alpha", log_alpha)
         else:
             self.log_alpha = torch.nn.Parameter(log_alpha)
-        self._vmap_q = _vmap_func(self.qvalue_network, (None, 0))
-        self._vmap_q_int = _vmap_func(self.intervention_qvalue_network, (None, 0))
+        self._vmaps = {"q": _vmap_func(self.qvalue_network, (None, 0)),
+                       "q_int": _vmap_func(self.intervention_qvalue_network, (None, 0))}
         self._critic_in_keys = {"q": list(self.qvalue_network.in_keys),
                                 "q_int": list(self.intervention_qvalue_network.in_keys)}
+        # HAIM-DRL's disturbance critic, converted last so the other networks' copies are initialised
+        # from the same random stream with or without it.
+        self.has_disturbance_critic = disturbance_qvalue_network is not None
+        self.disturbance_weight = float(disturbance_weight)
+        if self.has_disturbance_critic:
+            self.convert_to_functional(disturbance_qvalue_network, "disturbance_qvalue_network",
+                                       num_disturbance_qvalue_nets, create_target_params=True)
+            self._vmaps["q_dist"] = _vmap_func(self.disturbance_qvalue_network, (None, 0))
+            self._critic_in_keys["q_dist"] = list(self.disturbance_qvalue_network.in_keys)
 
     @property
     def alpha(self) -> torch.Tensor:
@@ -180,11 +211,11 @@ class PERLHFLoss(LossModule):
 
     # -- helpers ---------------------------------------------------------------------------
     def _q(self, critic: str, params, tensordict: TensorDictBase, action: torch.Tensor) -> torch.Tensor:
-        """``(num_qvalue_nets, *batch)`` values of ``critic`` (``"q"`` or ``"q_int"``) under ``params`` at ``action``."""
+        """``(copies, *batch)`` values of ``critic`` (``"q"``, ``"q_int"``, ``"q_dist"``) under ``params``
+        at ``action``."""
         td = tensordict.select(*self._critic_in_keys[critic], strict=False)  # a new td: the input is not written
         td.set(self.tensor_keys.action, action)
-        vmapped = self._vmap_q if critic == "q" else self._vmap_q_int
-        return vmapped(td, params).get(self.tensor_keys.state_action_value).squeeze(-1)
+        return self._vmaps[critic](td, params).get(self.tensor_keys.state_action_value).squeeze(-1)
 
     def _sample(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
         with set_exploration_type(ExplorationType.RANDOM), self.actor_network_params.to_module(
@@ -244,7 +275,12 @@ class PERLHFLoss(LossModule):
         q_new = self._q("q", self.qvalue_network_params.detach(), tensordict, new_action).min(0)[0]
         q_int_new = self._q("q_int", self.intervention_qvalue_network_params.detach(),
                             tensordict, new_action).min(0)[0]
-        loss_actor = (self.alpha * log_prob - self.psi * q_new + self.intervention_weight * q_int_new).mean()
+        actor_terms = self.alpha * log_prob - self.psi * q_new + self.intervention_weight * q_int_new
+        disturbance = {}
+        if self.has_disturbance_critic:
+            disturbance = self._disturbance_terms(tensordict, next_td, not_terminal, next_action, new_action)
+            actor_terms = actor_terms + self.disturbance_weight * disturbance.pop("q_dist_new")
+        loss_actor = actor_terms.mean()
         loss_alpha = -(self.log_alpha * (log_prob.detach() + self.target_entropy)).mean()
 
         return TensorDict(
@@ -261,9 +297,28 @@ class PERLHFLoss(LossModule):
                 "q_agent": q_agent.detach().mean() if q_agent.numel() else q_all.new_zeros(()),
                 "q_intervention": q_int.detach().mean(),
                 "intervention_rate": intervention.mean(),
+                **disturbance,
             },
             batch_size=[],
         )
+
+    def _disturbance_terms(self, tensordict: TensorDictBase, next_td: TensorDictBase, not_terminal: torch.Tensor,
+                           next_action: torch.Tensor, new_action: torch.Tensor) -> dict[str, torch.Tensor]:
+        """HAIM-DRL's disturbance critic: its TD loss on the executed action, ``min_k Q_dist_k(s, a_new)``
+        for the actor (critic parameters detached), and diagnostics. No sampling: the actions drawn for
+        the proxy-Q target and the actor are reused, so every other term is unchanged by the option."""
+        cost = tensordict.get(self.tensor_keys.disturbance_cost).squeeze(-1).float()
+        with torch.no_grad():
+            next_q_dist = self._q("q_dist", self.target_disturbance_qvalue_network_params,
+                                  next_td, next_action).min(0)[0]
+            target = cost + self.gamma * not_terminal * next_q_dist
+        q_dist = self._q("q_dist", self.disturbance_qvalue_network_params, tensordict,
+                         tensordict.get(self.tensor_keys.behavior_action))
+        q_dist_new = self._q("q_dist", self.disturbance_qvalue_network_params.detach(),
+                             tensordict, new_action).min(0)[0]
+        return {"loss_disturbance_qvalue": 0.5 * (q_dist - target).pow(2).mean(-1).sum(0),
+                "q_dist_new": q_dist_new,
+                "q_disturbance": q_dist.detach().mean()}
 
 
 def make_transitions(
@@ -275,15 +330,17 @@ def make_transitions(
     intervention_start: torch.Tensor,
     terminated: torch.Tensor,
     reward: torch.Tensor | None = None,
+    disturbance_cost: torch.Tensor | None = None,
 ) -> TensorDict:
     """A batch in the layout :class:`PERLHFLoss` reads (``(B, ...)`` tensors; flags ``(B, 1)`` bool).
 
     ``intervention_cost`` is computed as ``1 - cos(a_AV, a_exec)`` on start rows (0 elsewhere), as the
-    intervention transform does; ``done`` copies ``terminated``; ``reward`` defaults to zeros.
+    intervention transform does; ``done`` copies ``terminated``; ``reward`` defaults to zeros;
+    ``disturbance_cost`` ``(B, 1)`` is stored under ``next`` when given (HAIM-DRL's critic reads it).
     """
     batch = observation.shape[0]
     cost = (1 - torch.nn.functional.cosine_similarity(agent_action, behavior_action, dim=-1)).unsqueeze(-1)
-    return TensorDict(
+    td = TensorDict(
         {
             "observation": observation,
             "action": agent_action,
@@ -300,3 +357,6 @@ def make_transitions(
         },
         [batch],
     )
+    if disturbance_cost is not None:
+        td.set(("next", "disturbance_cost"), disturbance_cost)
+    return td

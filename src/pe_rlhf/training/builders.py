@@ -15,9 +15,10 @@ Collection backends (``collector.backend``), all TorchRL collectors:
 - ``ray``: :class:`~torchrl.collectors.distributed.RayCollector` (``pip install pe-rlhf[ray]``), sync
   mode, same layout as ``multisync``.
 
-Worker ``i`` builds its own env with :func:`make_worker_env` (its own mentor, physics, selector and
-``InterventionTransform``): env seed ``seed + i``, mentor seed ``mentor.seed + i``, warm-up
-``ceil(collector.warmup_steps / num_workers)`` steps. The Q-ensemble reaches the workers in shared
+Worker ``i`` builds its own env with :func:`make_worker_env` (its own mentor, physics, selector,
+``InterventionTransform`` and, with ``disturbance.enabled`` (HAIM-DRL), ``TrafficDisturbanceCost``): env
+seed ``seed + i``, mentor seed ``mentor.seed + i``, warm-up ``ceil(collector.warmup_steps / num_workers)``
+steps. The Q-ensemble reaches the workers in shared
 memory (``share_memory()``; handed over through ``create_env_kwargs``, which torch.multiprocessing
 pickles with storage handles), so the main process's in-place fits are seen at once; ray workers
 cannot share memory and get the weights from :func:`push_ensemble_weights`. Policy weights reach
@@ -41,11 +42,17 @@ from pe_rlhf.mentors import Mentor, make_mentor
 from pe_rlhf.modules import QEnsemble, make_actor, make_qvalue
 from pe_rlhf.objectives import PERLHFLoss
 from pe_rlhf.physics import IDMMobilPolicy
-from pe_rlhf.transforms import HybridActionSelector, InterventionTransform, RealtimePacing
+from pe_rlhf.transforms import (
+    HybridActionSelector,
+    InterventionTransform,
+    RealtimePacing,
+    TrafficDisturbanceCost,
+)
 
 OBS_DIM = 250  # the default world's observation (240 lidar beams); obs_dim(cfg) follows env.lidar_beams and env.lane_features
 # A worker's Q-ensemble seen from its collector, in TorchRL's attribute-path notation (cascade_execute);
-# make_worker_env checks that the InterventionTransform is the env's last transform.
+# make_worker_env checks that the InterventionTransform is the env's last transform when there is a selector.
+# (HAIM-DRL's TrafficDisturbanceCost comes after it, and HAIM-DRL has no selector.)
 WORKER_ENSEMBLE_PATH = "env.transform[-1].selector.q_ensemble"
 
 
@@ -90,7 +97,8 @@ def build_q_ensemble(cfg) -> QEnsemble | None:
 
 def build_train_env(cfg, env_config, mentor: Mentor, ensemble: QEnsemble | None, physics,
                     worker_index: int = 0, num_workers: int = 1):
-    """The TorchRL driving env with ``InterventionTransform`` (PE-RLHF with a selector, HACO without).
+    """The TorchRL driving env with ``InterventionTransform`` (PE-RLHF with a selector, HACO without), then
+    ``TrafficDisturbanceCost`` with ``disturbance.enabled`` (HAIM-DRL; after it: it reads the takeover flag).
 
     As worker ``worker_index`` of ``num_workers``: seeded ``seed + worker_index``, with its share
     ``ceil(collector.warmup_steps / num_workers)`` of the warm-up.
@@ -103,6 +111,9 @@ def build_train_env(cfg, env_config, mentor: Mentor, ensemble: QEnsemble | None,
     warmup_steps = math.ceil(int(cfg.collector.warmup_steps) / num_workers)
     env.append_transform(InterventionTransform(mentor, selector, physics if selector else None,
                                                warmup_steps=warmup_steps))
+    if cfg.disturbance.enabled:
+        d = cfg.disturbance
+        env.append_transform(TrafficDisturbanceCost(float(d.threshold), float(d.horizon), float(d.follower_range)))
     if float(cfg.collector.realtime_hz) > 0:  # last: it ticks before the mentor is asked (see RealtimePacing)
         env.append_transform(RealtimePacing(float(cfg.collector.realtime_hz)))
     env.set_seed(int(cfg.seed) + int(worker_index))
@@ -130,7 +141,7 @@ def make_worker_env(cfg, worker_index: int, num_workers: int, start_frames: int 
 
     env = build_train_env(cfg, driving_config(cfg), build_mentor(cfg, worker_index), ensemble, build_physics(cfg),
                           worker_index, num_workers)
-    transform = env.transform[-1]
+    transform = env.transform[-1] if ensemble is not None else find_transform(env, InterventionTransform)
     if not isinstance(transform, InterventionTransform):
         raise TypeError(f"a worker env must end with its InterventionTransform (WORKER_ENSEMBLE_PATH), "
                            f"got {type(transform).__name__}")
@@ -227,10 +238,12 @@ def build_replay_buffer(cfg) -> TensorDictReplayBuffer:
 
 
 def build_loss(cfg, actor) -> tuple[PERLHFLoss, SoftUpdate]:
+    """``PERLHFLoss`` of ``cfg.loss``, with HAIM-DRL's disturbance critic when ``disturbance.enabled``."""
     hidden, n = tuple(cfg.loss.hidden), obs_dim(cfg)
     target_entropy = cfg.loss.target_entropy
+    disturbance = make_qvalue(n, hidden=hidden) if cfg.disturbance.enabled else None
     loss = PERLHFLoss(
-        actor, make_qvalue(n, hidden=hidden), make_qvalue(n, hidden=hidden),
+        actor, make_qvalue(n, hidden=hidden), make_qvalue(n, hidden=hidden), disturbance,
         num_qvalue_nets=int(cfg.loss.num_qvalue_nets),
         gamma=float(cfg.loss.gamma), gap_coef=float(cfg.loss.gap_coef),
         gap_margin=None if cfg.loss.gap_margin is None else float(cfg.loss.gap_margin), psi=float(cfg.loss.psi),
@@ -239,6 +252,8 @@ def build_loss(cfg, actor) -> tuple[PERLHFLoss, SoftUpdate]:
         num_intervention_qvalue_nets=int(cfg.loss.num_intervention_qvalue_nets),
         alpha_init=float(cfg.loss.alpha_init),
         target_entropy=target_entropy if target_entropy == "auto" else float(target_entropy), action_dim=2,
+        disturbance_weight=float(cfg.loss.disturbance_weight),
+        num_disturbance_qvalue_nets=int(cfg.loss.num_disturbance_qvalue_nets),
     )
     return loss, SoftUpdate(loss, tau=float(cfg.loss.tau))
 
@@ -246,13 +261,17 @@ def build_loss(cfg, actor) -> tuple[PERLHFLoss, SoftUpdate]:
 def build_optimizers(cfg, loss: PERLHFLoss) -> dict[str, torch.optim.Optimizer]:
     """One Adam per loss term, each over the parameters that term trains."""
     lr = float(cfg.optim.lr)
-    return {
+    optimizers = {
         "actor": torch.optim.Adam(loss.actor_network_params.flatten_keys().values(), lr=lr),
         "qvalue": torch.optim.Adam(loss.qvalue_network_params.flatten_keys().values(), lr=lr),
         "intervention_qvalue": torch.optim.Adam(
             loss.intervention_qvalue_network_params.flatten_keys().values(), lr=lr),
         "alpha": torch.optim.Adam([loss.log_alpha], lr=lr),
     }
+    if loss.has_disturbance_critic:
+        optimizers["disturbance_qvalue"] = torch.optim.Adam(
+            loss.disturbance_qvalue_network_params.flatten_keys().values(), lr=lr)
+    return optimizers
 
 
 def find_transform(env, cls):

@@ -53,7 +53,8 @@ DEFAULTS: dict[str, Any] = {
     "loss": {"gamma": 0.99, "tau": 0.005, "gap_coef": 10.0, "gap_margin": None, "psi": 1.0, "intervention_weight": 1.0,
              "cosine_cost": True, "intervention_critic_action": "agent", "num_qvalue_nets": 2,
              "num_intervention_qvalue_nets": 1, "target_entropy": "auto", "alpha_init": 1.0,
-             "hidden": [256, 256]},
+             "hidden": [256, 256], "disturbance_weight": 1.0, "num_disturbance_qvalue_nets": 2},
+    "disturbance": {"enabled": False, "threshold": 5.0, "horizon": 3.0, "follower_range": 60.0},
     "logger": {"out_dir": None, "csv": True, "wandb": False, "wandb_mode": "offline",
                "wandb_project": "pe-rlhf", "tensorboard": False, "log_every": 1},
     "eval": {"every_frames": 5000, "episodes": 10, "split": "test", "video": True},
@@ -353,6 +354,9 @@ RULES: dict[str, Rule] = {
     "loss.intervention_critic_action": _choice(*INTERVENTION_CRITIC_ACTIONS),
     "loss.num_qvalue_nets": _int(1), "loss.num_intervention_qvalue_nets": _int(1),
     "loss.target_entropy": _target_entropy, "loss.alpha_init": _number(0, lo_open=True), "loss.hidden": _hidden,
+    "loss.disturbance_weight": _number(0), "loss.num_disturbance_qvalue_nets": _int(1),
+    "disturbance.enabled": _bool, **{f"disturbance.{k}": _number(0, lo_open=True)
+                                      for k in ("threshold", "horizon", "follower_range")},
     "logger.out_dir": _optional(_string), **{f"logger.{k}": _bool for k in ("csv", "wandb", "tensorboard")},
     "logger.wandb_mode": _choice(*WANDB_MODES), "logger.wandb_project": _string, "logger.log_every": _int(1),
     "eval.every_frames": _int(0), "eval.episodes": _int(1), "eval.split": _choice(*SPLITS), "eval.video": _bool,
@@ -492,17 +496,19 @@ def _check_human_kwargs(kwargs: DictConfig) -> None:
 
 
 def method_name(cfg: DictConfig) -> str:
-    """``"PE-RLHF"`` (physics + selector) or ``"HACO"`` (neither); the mixed cases are errors.
+    """``"PE-RLHF"`` (physics + selector), ``"HACO"`` (neither) or ``"HAIM-DRL"`` (HACO with
+    ``disturbance.enabled``; PE-RLHF with it is ``"PE-RLHF+disturbance"``); the mixed cases are errors.
 
     The intervention transform takes physics and selector together or not at all; the paper's
     "w/o ensemble" ablation is ``selector.num_members=1``, its physics ablations are
     ``physics.use_idm`` / ``physics.use_mobil``.
     """
     physics, selector = cfg.physics.enabled, cfg.selector.enabled
+    disturbance = bool(cfg.disturbance.enabled)
     if physics and selector:
-        return "PE-RLHF"
+        return "PE-RLHF+disturbance" if disturbance else "PE-RLHF"
     if not physics and not selector:
-        return "HACO"
+        return "HAIM-DRL" if disturbance else "HACO"
     if selector:
         raise _fail("selector.enabled", True, "needs physics.enabled=true (PE-RLHF chooses between the "
                     "mentor's and the physics action); set both false for HACO")

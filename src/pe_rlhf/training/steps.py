@@ -90,13 +90,16 @@ def nonfinite_parameters(module: torch.nn.Module) -> list[str]:
 
 def batch_metrics(batch: TensorDictBase) -> dict[str, float]:
     """Counts over one collected batch (flat ``(T,)``): steps, takeovers, starts, mentor chosen, cost,
-    episodes ended by a simulator fault (``sim_error``)."""
+    episodes ended by a simulator fault (``sim_error``); ``disturbance_cost`` (sum) only when the batch
+    has HAIM-DRL's ``("next", "disturbance_cost")``."""
     nxt = batch.get("next")
     sim_error = nxt.get("sim_error", None)
     intervention = nxt.get("intervention").squeeze(-1)
     selected = nxt.get("mentor_selected").squeeze(-1) & intervention
     done = nxt.get("done").squeeze(-1)
+    disturbance = nxt.get("disturbance_cost", None)
     return {
+        **({"disturbance_cost": float(disturbance.sum())} if disturbance is not None else {}),
         "steps": float(intervention.numel()),
         "takeover_steps": float(intervention.sum()),
         "takeover_starts": float(nxt.get("intervention_start").sum()),

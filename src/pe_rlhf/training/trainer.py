@@ -48,6 +48,7 @@ from pe_rlhf.evaluation import TorchRLPolicyAdapter, evaluate
 from pe_rlhf.modules import EnsembleSchedule, fit_q_ensemble
 from pe_rlhf.threads import torch_threads
 from pe_rlhf.training import builders
+from pe_rlhf.training.config import method_name
 from pe_rlhf.training.steps import batch_metrics, ensemble_transitions, relabel_warmup
 from pe_rlhf.transforms import InterventionTransform, RealtimePacing
 
@@ -160,6 +161,8 @@ def iteration_log(counters: Counters, m: dict, losses: dict, started: float) -> 
         "time/env_seconds": counters.env_seconds,
         "time/update_seconds": counters.update_seconds,
     }
+    if "disturbance_cost" in m:  # HAIM-DRL
+        log["train/disturbance_cost"] = m["disturbance_cost"]
     for k, v in losses.items():
         log[f"loss/{k[5:]}" if k.startswith("loss_") else f"train/{k}"] = v
     return log
@@ -282,7 +285,8 @@ class _Run:
         self.started = time.time()
         self.next_eval = _next_multiple(c.frames, int(cfg.eval.every_frames))
         self.next_ckpt = _next_multiple(c.frames, int(cfg.checkpoint.every_frames))
-        self.bar = tqdm(total=int(cfg.collector.total_frames), initial=int(c.frames), desc="PE-RLHF", unit="step")
+        self.bar = tqdm(total=int(cfg.collector.total_frames), initial=int(c.frames), desc=method_name(cfg),
+                        unit="step")
         self.updater.start()  # optim.async_updates: the learner thread (pe_rlhf.training.background_updates)
 
     def collect(self) -> None:

@@ -1,7 +1,10 @@
-"""TorchRL transforms of PE-RLHF: mentor intervention, hybrid action selection, real-time pacing."""
+"""TorchRL transforms of PE-RLHF: mentor intervention, hybrid action selection, real-time pacing, and
+HAIM-DRL's traffic-disturbance cost."""
 
+from pe_rlhf.transforms.disturbance import TrafficDisturbanceCost
 from pe_rlhf.transforms.intervention import InterventionTransform, takeover_cost
 from pe_rlhf.transforms.pacing import RealtimePacing
 from pe_rlhf.transforms.selector import HybridActionSelector
 
-__all__ = ["HybridActionSelector", "InterventionTransform", "RealtimePacing", "takeover_cost"]
+__all__ = ["HybridActionSelector", "InterventionTransform", "RealtimePacing", "TrafficDisturbanceCost",
+           "takeover_cost"]

@@ -1,0 +1,26 @@
+"""HAIM-DRL training recipe: HACO plus a traffic-disturbance cost with its own twin critic.
+
+    python recipes/haim_drl/train.py [profile=cpu|smoke|paper] [group.key=value ...] [--out DIR]
+    python recipes/haim_drl/train.py --resume DIR      # continue a killed run from its last checkpoint
+
+The PE-RLHF recipe (``recipes/pe_rlhf``) with ``physics.enabled=false selector.enabled=false
+disturbance.enabled=true`` (``config.yaml`` beside this script): the takeover transform without
+physics or selector, :class:`~pe_rlhf.transforms.TrafficDisturbanceCost` after it, and
+``PERLHFLoss`` with a disturbance critic (``loss.disturbance_weight``, ``loss.num_disturbance_qvalue_nets``).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from pe_rlhf.training import recipe
+
+CONFIG = Path(__file__).with_name("config.yaml")
+
+
+def main(argv: list[str] | None = None) -> dict:
+    return recipe.main(argv, config_path=CONFIG, description=__doc__.splitlines()[0])
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,59 @@
+"""The entry point shared by the proxy-Q recipes (``recipes/pe_rlhf``, ``recipes/haim_drl``): parse the
+command line, load the recipe's config, train, write the outputs, print the summary.
+
+Outputs in the run folder: ``config.yaml`` (resolved), ``metrics.csv``, ``checkpoints/``,
+``final_eval.json``, ``training_curves.png``, ``actor.pt``, ``test_episode.gif`` (with ``eval.video``) and
+``reference_<policy>.json`` (with ``--compare``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+from pe_rlhf.evaluation import print_summary, write_json
+from pe_rlhf.training.config import load_config, method_name, save_config, to_container
+from pe_rlhf.training.metrics_logger import MetricsLogger
+from pe_rlhf.training.plots import plot_learning_curves
+from pe_rlhf.training.trainer import evaluate_reference, registered_policies, train
+
+
+def main(argv: list[str] | None = None, *, config_path: str | Path | None = None,
+         description: str | None = None) -> dict:
+    """Run a recipe: ``config_path`` is its ``config.yaml`` (None: ``recipes/pe_rlhf/config.yaml``,
+    see :func:`~pe_rlhf.training.config.load_config`); ``argv`` as on the command line."""
+    parser = argparse.ArgumentParser(description=description)
+    parser.add_argument("overrides", nargs="*", help="config overrides, e.g. profile=cpu optim.lr=3e-4")
+    parser.add_argument("--out", default=None, help="output folder (default runs/<method>-<time>)")
+    parser.add_argument("--compare", default=None, metavar="POLICY",
+                        help="also evaluate a registered policy (e.g. idm-mobil) on the same test scenes and "
+                             "print both in the final table")
+    parser.add_argument("--resume", default=None, metavar="DIR", help="continue the run in DIR")
+    args = parser.parse_args(argv)
+    if args.compare and args.compare not in registered_policies():  # fail now, not after training
+        parser.error(f"--compare {args.compare!r}: allowed: {sorted(registered_policies())}")
+    if args.resume:
+        out = Path(args.resume)
+        cfg = load_config(out / "config.yaml", overrides=args.overrides, apply_profile=False)
+    else:
+        cfg = load_config(config_path, overrides=args.overrides)
+    method = method_name(cfg)
+    if not args.resume:
+        out = Path(args.out or cfg.logger.out_dir or f"runs/{method.lower()}-{time.strftime('%Y%m%d-%H%M%S')}")
+        out.mkdir(parents=True, exist_ok=True)
+        save_config(cfg, out / "config.yaml")
+    with MetricsLogger(out, csv=bool(cfg.logger.csv), wandb=bool(cfg.logger.wandb), wandb_mode=str(cfg.logger.wandb_mode),
+                       wandb_project=str(cfg.logger.wandb_project), tensorboard=bool(cfg.logger.tensorboard),
+                       config=to_container(cfg), resume=bool(args.resume)) as logger:
+        final = train(cfg, out, logger, checkpoint_dir=out / "checkpoints", resume=bool(args.resume))
+    write_json(out / "final_eval.json", final)
+    plot_learning_curves(out / "metrics.csv", out)
+    rows = [(method, final)]
+    if args.compare:
+        reference = evaluate_reference(args.compare, cfg)
+        write_json(out / f"reference_{args.compare}.json", reference)
+        rows.insert(0, (args.compare, reference))
+    print_summary(rows)
+    print(f"outputs in {out}")
+    return final
