@@ -94,6 +94,14 @@ def plot_takeover(runs: dict[int, Path], path: Path) -> None:
     plt.close(fig)
 
 
+def recipe_method(overrides: list[str]) -> str:
+    """The method the overrides make of the recipe: PE-RLHF, HACO or HAIM-DRL (for the tables' labels)."""
+    sys.path.insert(0, str(ROOT / "src"))
+    from pe_rlhf.training.config import load_config, method_name
+
+    return method_name(load_config(None, ["profile=cpu", *overrides]))
+
+
 def mean_std(values: list[float]) -> dict[str, float]:
     return {"mean": float(np.mean(values)), "std": float(np.std(values))}
 
@@ -110,10 +118,11 @@ def markdown(result: dict) -> str:
     ref = result["reference"]
     lines.append(f"| {ref['policy']} | {cell(ref['success_rate'])} | {cell(ref['episodic_return'])} | "
                  f"{cell(ref['safety_violation'])} | | | |")
+    method = result.get("method", "PE-RLHF")  # results written before the field existed are PE-RLHF's
     for seed, p in result["per_seed"].items():
-        lines.append(f"| PE-RLHF seed {seed} | " + " | ".join(f"{p['test'][k]['mean']:.2f}" for k in test_keys) + " |")
+        lines.append(f"| {method} seed {seed} | " + " | ".join(f"{p['test'][k]['mean']:.2f}" for k in test_keys) + " |")
     o = result["over_seeds"]
-    lines.append("| **PE-RLHF, mean ± std over seeds** | " + " | ".join(
+    lines.append(f"| **{method}, mean ± std over seeds** | " + " | ".join(
         cell(o["test_success_rate"] if k == "success_rate" else o[f"test_{k}"]) for k in test_keys) + " |")
     lines += ["", "| seed | train safety viol. (per 1K steps) | takeover data usage | value-takeover rate | "
               "takeover rate, first → last third | wall min (env / updates) |", "|---|---|---|---|---|---|"]
@@ -172,6 +181,7 @@ def main() -> None:
     success = [p["test"]["success_rate"]["mean"] for p in per_seed.values()]
     result = {
         "command": " ".join(["python", "benchmarks/train_seeds.py", *sys.argv[1:]]),
+        "method": recipe_method(args.overrides),
         "profile": str(cfg.profile),
         "total_frames": int(cfg.collector.total_frames),
         "test_scenes": [int(seeds[0]), int(seeds[-1])],
