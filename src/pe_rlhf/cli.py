@@ -4,6 +4,7 @@ Example::
 
     pe-rlhf evaluate --policy idm-mobil --split test --episodes 50 --json runs/idm.json
     pe-rlhf evaluate --policy random --seeds 2000-2049 --config-override traffic_density=0.8
+    pe-rlhf sweep recipes/sweeps/mentor_proficiency.yaml --max-parallel 2
 """
 
 from __future__ import annotations
@@ -201,7 +202,15 @@ def add_demo_parser(subparsers: argparse._SubParsersAction) -> argparse.Argument
     return p
 
 
-SUBCOMMANDS: dict[str, AddParser] = {"evaluate": add_evaluate_parser, "demo": add_demo_parser}
+def add_sweep_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    """``pe-rlhf sweep``: see :mod:`pe_rlhf.sweeps.cli`."""
+    from pe_rlhf.sweeps.cli import add_sweep_parser as add
+
+    return add(subparsers)
+
+
+SUBCOMMANDS: dict[str, AddParser] = {"evaluate": add_evaluate_parser, "demo": add_demo_parser,
+                                     "sweep": add_sweep_parser}
 
 
 def build_parser() -> argparse.ArgumentParser:

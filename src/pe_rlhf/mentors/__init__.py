@@ -1,10 +1,11 @@
 """Mentors: simulated drivers of controlled skill and a real person at the controls.
 
 All implement :class:`~pe_rlhf.mentors.base.Mentor`; ``make_mentor(name, seed)`` builds
-one by name (``professional``, ``amateur``, ``adversarial``/``bad``, ``human``).
+one by name (``professional``, ``amateur``, ``adversarial``/``bad``, ``collapsing``, ``human``).
 """
 
 from pe_rlhf.mentors.base import Mentor, MentorDecision
+from pe_rlhf.mentors.collapsing import CollapsingMentor
 from pe_rlhf.mentors.driver import DriverParams, PrivilegedDriver
 from pe_rlhf.mentors.registry import MENTOR_NAMES, MentorPolicy, make_mentor
 from pe_rlhf.mentors.simulated import PRESETS, SimulatedMentor, SkillProfile
@@ -21,6 +22,7 @@ def __getattr__(name: str):
 
 
 __all__ = [
+    "CollapsingMentor",
     "HumanMentor",
     "MENTOR_NAMES",
     "PRESETS",

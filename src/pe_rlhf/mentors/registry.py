@@ -2,8 +2,10 @@
 
 ``make_mentor(name, seed, **overrides)`` builds ``professional``, ``amateur``,
 ``adversarial`` (alias ``bad``) simulated mentors, with :class:`SkillProfile` fields as
-overrides, or ``human`` (:class:`pe_rlhf.mentors.human.HumanMentor`, overrides passed
-to its constructor, seed unused). Importing this module registers the simulated presets
+overrides, ``collapsing`` (:class:`~pe_rlhf.mentors.collapsing.CollapsingMentor`: one
+preset, then another from a given step; overrides ``switch_step``, ``before``, ``after``), or
+``human`` (:class:`pe_rlhf.mentors.human.HumanMentor`, overrides passed to its constructor,
+seed unused). Importing this module registers the simulated presets
 with :func:`pe_rlhf.evaluation.register_policy` so ``pe-rlhf evaluate --policy
 professional`` drives the mentor alone.
 """
@@ -18,7 +20,7 @@ from pe_rlhf.evaluation.policies import POLICY_FACTORIES, register_policy
 from pe_rlhf.mentors.base import Mentor
 from pe_rlhf.mentors.simulated import ALIASES, PRESETS, SimulatedMentor, SkillProfile, preset
 
-MENTOR_NAMES = tuple(sorted(PRESETS)) + tuple(sorted(ALIASES)) + ("human",)
+MENTOR_NAMES = tuple(sorted(PRESETS)) + tuple(sorted(ALIASES)) + ("collapsing", "human")
 
 
 def make_mentor(name: str, seed: int = 0, **overrides) -> Mentor:
@@ -35,6 +37,13 @@ def make_mentor(name: str, seed: int = 0, **overrides) -> Mentor:
             raise ValueError(f"mentor 'human' needs pe_rlhf.mentors.human.HumanMentor (pygame), "
                              f"which failed to import: {e}") from e
         return HumanMentor(**overrides)
+    if name == "collapsing":
+        from pe_rlhf.mentors.collapsing import COLLAPSING_KWARGS, CollapsingMentor
+
+        unknown = sorted(set(overrides) - set(COLLAPSING_KWARGS))
+        if unknown:
+            raise ValueError(f"unknown CollapsingMentor argument(s) {unknown}; known: {list(COLLAPSING_KWARGS)}")
+        return CollapsingMentor(seed=seed, **overrides)
     if ALIASES.get(name, name) not in PRESETS:
         raise ValueError(f"unknown mentor {name!r}; allowed: {list(MENTOR_NAMES)}")
     known = {f.name for f in dataclasses.fields(SkillProfile)}

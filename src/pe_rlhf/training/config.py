@@ -463,6 +463,14 @@ def _check_mentor_kwargs(mentor: DictConfig) -> None:
     if mentor.name == "human":
         _check_human_kwargs(mentor.kwargs)
         return
+    if mentor.name == "collapsing":
+        from pe_rlhf.mentors.collapsing import COLLAPSING_KWARGS
+
+        for key in mentor.kwargs:
+            if key not in COLLAPSING_KWARGS:
+                raise _fail(f"mentor.kwargs.{key}", mentor.kwargs[key],
+                            f"unknown CollapsingMentor argument; known: {list(COLLAPSING_KWARGS)}")
+        return
     from pe_rlhf.mentors.simulated import SkillProfile
 
     known = sorted(f.name for f in dataclasses.fields(SkillProfile))

@@ -1,0 +1,88 @@
+"""``pe-rlhf sweep CONFIG.yaml``: run a sweep's unfinished cells as Ray tasks, then write its summary.
+
+    pe-rlhf sweep recipes/sweeps/epsilon_sensitivity.yaml                 # local Ray, all CPUs
+    pe-rlhf sweep recipes/sweeps/lower_bound.yaml --max-parallel 2 --out runs/sweeps/lb
+    pe-rlhf sweep recipes/sweeps/warmup.yaml --address ray://head:10001   # a Ray cluster (shared OUT)
+    pe-rlhf sweep recipes/sweeps/warmup.yaml --dry-run                    # the cells, their state, no run
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+from pathlib import Path
+
+from pe_rlhf.sweeps.cells import cell_dir, check_folder, is_finished
+from pe_rlhf.sweeps.spec import SweepConfigError, load_sweep
+
+
+def _state(out: Path, cell) -> str:
+    if is_finished(out, cell):
+        return "finished"
+    from pe_rlhf.training.checkpoint import find_checkpoint
+
+    directory = cell_dir(out, cell)
+    return "resume" if find_checkpoint(directory / "checkpoints") is not None else "run"
+
+
+def print_plan(spec, cells, out: Path) -> None:
+    """The dry run: every cell, whether it is finished / resumes / runs, and its overrides."""
+    states = [_state(out, c) for c in cells]
+    print(f"sweep {spec.name}: {len(cells)} cells ({states.count('finished')} finished, "
+          f"{states.count('resume')} to resume, {states.count('run')} to run), {spec.num_cpus:g} CPU each; "
+          f"out {out}")
+    for cell, state in zip(cells, states):
+        what = cell.method.recipe + (f" --policy {cell.method.policy}" if cell.method.policy else "")
+        print(f"  {state:8s} {cell.name}: {what} {' '.join(cell.overrides)}")
+
+
+def run_sweep_command(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
+    from pe_rlhf.sweeps import DEFAULT_ROOT, check_cell_configs, expand, run_cells, write_summary
+
+    if args.max_parallel is not None and args.max_parallel < 1:
+        parser.error(f"--max-parallel {args.max_parallel}: must be >= 1")
+    try:
+        spec = load_sweep(args.config)
+        out = Path(args.out) if args.out else DEFAULT_ROOT / spec.name
+        cells = expand(spec)
+        check_cell_configs(cells)
+        for cell in cells:
+            check_folder(out, cell)
+    except SweepConfigError as e:
+        parser.error(str(e))
+    if args.dry_run:
+        print_plan(spec, cells, out)
+        return 0
+    out.mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(args.config, out / "sweep.yaml")
+    try:
+        report = run_cells(cells, out, address=args.address, max_parallel=args.max_parallel,
+                           num_cpus=spec.num_cpus, progress=not args.no_progress, name=spec.name)
+    except RuntimeError as e:  # ray missing
+        parser.error(str(e))
+    paths = write_summary(out, cells, spec.metrics, title=spec.name, description=spec.description)
+    print(f"{len(report.skipped)} cells were finished already, {len(report.finished)} finished now, "
+          f"{len(report.failed)} failed")
+    print(paths["summary_md"].read_text())
+    for name, error in report.failed.items():
+        print(f"failed: {name}: {error} (rerun the same command to retry it; log in {out / 'logs' / name}.log)")
+    return 1 if report.failed else 0
+
+
+def add_sweep_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    """``pe-rlhf sweep``: a grid of recipe runs as Ray tasks, resumable, summarised."""
+    p = subparsers.add_parser("sweep", help="run a grid of training runs (Ray), summarise them",
+                              description="Run a sweep config's cells (method x mentor x parameter x seed) as Ray "
+                              "tasks; finished cells are skipped, so rerunning continues a sweep.")
+    p.add_argument("config", metavar="CONFIG.yaml", help="sweep config (see recipes/sweeps/)")
+    p.add_argument("--out", metavar="DIR", help="sweep folder (default runs/sweeps/<name>)")
+    p.add_argument("--address", metavar="ADDR", help="Ray cluster address (default: a local Ray on this machine)")
+    p.add_argument("--max-parallel", type=int, metavar="N", help="cells running at once (default: as many as the "
+                   "CPUs hold at the config's resources.num_cpus)")
+    p.add_argument("--dry-run", action="store_true", help="list the cells and their state, check configs, run nothing")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(handler=run_sweep_command, subparser=p)
+    return p
+
+
+__all__ = ["add_sweep_parser", "print_plan", "run_sweep_command"]

@@ -1,0 +1,178 @@
+"""Running the cells: one Ray task per cell (local Ray by default, a cluster with ``address``), at most
+``max_parallel`` at once, a tqdm bar over finished cells naming the running ones.
+
+Each task runs the cell's recipe in the Ray worker process (:func:`run_cell`): ``OMP_NUM_THREADS`` and
+torch's intra-op threads set to the cell's CPUs (1 by default), ``SDL_VIDEODRIVER=dummy``, stdout and
+stderr appended to ``OUT/logs/<cell>.log``. A cell that raises is reported and left unfinished; the next
+invocation reruns it (from its newest checkpoint when it has one). With a multi-node cluster, ``OUT``
+must be a path every node sees (a shared filesystem) and pe_rlhf installed on every node.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import sys
+import time
+import traceback
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from pe_rlhf.sweeps.cells import FINAL_EVAL, Cell, attempt_argv, cell_dir, log_path, plan, write_record
+
+THREAD_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+@dataclass
+class SweepReport:
+    """What one invocation did: cells skipped (finished before), finished now (seconds), failed (error)."""
+
+    skipped: list[str] = field(default_factory=list)
+    finished: dict[str, float] = field(default_factory=dict)
+    failed: dict[str, str] = field(default_factory=dict)
+
+
+@contextlib.contextmanager
+def _output_to(path: Path):
+    """Send this process's stdout and stderr (file descriptors too: native code, subprocesses) to ``path``."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    sys.stdout.flush()
+    sys.stderr.flush()
+    saved = os.dup(1), os.dup(2)
+    with open(path, "a") as log:
+        os.dup2(log.fileno(), 1)
+        os.dup2(log.fileno(), 2)
+        try:
+            with contextlib.redirect_stdout(log), contextlib.redirect_stderr(log):
+                yield log
+        finally:
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os.dup2(saved[0], 1)
+            os.dup2(saved[1], 2)
+            os.close(saved[0])
+            os.close(saved[1])
+
+
+def _run_recipe(recipe: str, policy: str | None, argv: list[str], directory: Path) -> None:
+    if recipe in ("pe_rlhf", "haim_drl"):
+        from pe_rlhf.baselines.config import recipe_config_path
+        from pe_rlhf.training import recipe as proxy_q
+
+        proxy_q.main(argv, config_path=recipe_config_path("haim_drl") if recipe == "haim_drl" else None)
+    elif recipe == "evaluate":
+        _evaluate_only(policy, argv, directory)
+    else:
+        from pe_rlhf.baselines import main as baseline_main
+
+        baseline_main(recipe, argv)
+
+
+def _evaluate_only(policy: str, argv: list[str], directory: Path) -> None:
+    """An evaluation-only cell: ``policy`` on the scenes the recipe's final evaluation uses (its
+    ``eval.split`` / ``eval.episodes`` / ``env``), written as the cell's ``final_eval.json``."""
+    from pe_rlhf.evaluation import write_json
+    from pe_rlhf.training.config import load_config, save_config
+    from pe_rlhf.training.trainer import evaluate_reference
+
+    overrides = argv[: argv.index("--out")]
+    cfg = load_config(None, overrides)
+    save_config(cfg, directory / "config.yaml")
+    started = time.time()
+    summary = evaluate_reference(policy, cfg)
+    summary["training"] = None
+    summary["eval_seconds"] = time.time() - started
+    write_json(directory / FINAL_EVAL, summary)
+    print(f"{policy}: success {summary['success_rate']['mean']:.2f} on {summary['episodes']} episodes")
+
+
+def run_cell(cell: Cell, out: str, threads: int = 1) -> dict:
+    """Run one cell here (the body of its Ray task); returns ``{"name", "seconds", "resumed"}``."""
+    import torch
+
+    for var in THREAD_VARS:
+        os.environ[var] = str(threads)
+    os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
+    torch.set_num_threads(threads)
+    directory = cell_dir(Path(out), cell)
+    started = time.time()
+    with _output_to(log_path(Path(out), cell)):
+        argv, resumed = attempt_argv(directory, list(cell.overrides))
+        print(f"=== {time.strftime('%Y-%m-%d %H:%M:%S')} {cell.name}: "
+              f"{'resume' if resumed else 'start'} {cell.method.recipe} {' '.join(argv)}", flush=True)
+        try:
+            _run_recipe(cell.method.recipe, cell.method.policy, argv, directory)
+        except BaseException:
+            traceback.print_exc()
+            raise
+    return {"name": cell.name, "seconds": time.time() - started, "resumed": resumed}
+
+
+def _running(names: list[str], width: int = 100) -> str:
+    text = "running: " + ", ".join(names)
+    return text if len(text) <= width else text[: width - 12] + f"... ({len(names)})"
+
+
+def _init_ray(address: str | None):
+    """Ray, started here (local) or connected to ``address``; returns (ray, whether we started it)."""
+    try:
+        import ray
+    except ImportError:
+        raise RuntimeError("pe-rlhf sweep runs its cells as Ray tasks: pip install 'ray==2.60.0'") from None
+    if ray.is_initialized():
+        return ray, False
+    ray.init(address=address, include_dashboard=False, log_to_driver=False, configure_logging=False)
+    return ray, True
+
+
+def run_cells(cells: list[Cell], out: str | Path, *, address: str | None = None, max_parallel: int | None = None,
+              num_cpus: float = 1.0, progress: bool = True, name: str = "sweep") -> SweepReport:
+    """Run every unfinished cell as a Ray task, writing to ``out/<cell>/``; finished cells are skipped.
+
+    ``address``: a Ray cluster (None: the running Ray of this process, else a local one started here and
+    shut down after). ``max_parallel``: cells in flight at once (None: as many as the cluster's CPUs hold).
+    """
+    from tqdm import tqdm
+
+    out = Path(out)
+    finished, todo = plan(out, cells)
+    report = SweepReport(skipped=[c.name for c in finished])
+    if not todo:
+        return report
+    for cell in todo:
+        write_record(out, cell)
+    ray, started_here = _init_ray(address)
+    try:
+        threads = max(1, int(num_cpus))
+        env_vars = {"SDL_VIDEODRIVER": "dummy", **{v: str(threads) for v in THREAD_VARS}}
+        task = ray.remote(run_cell).options(num_cpus=num_cpus, max_retries=0,
+                                            runtime_env={"env_vars": env_vars})
+        capacity = max_parallel or max(1, int(ray.cluster_resources().get("CPU", 1) // num_cpus))
+        pending, in_flight = list(todo), {}
+        bar = tqdm(total=len(cells), initial=len(finished), desc=name, unit="cell", disable=not progress,
+                   dynamic_ncols=True)
+        while pending or in_flight:
+            while pending and len(in_flight) < capacity:
+                cell = pending.pop(0)
+                in_flight[task.remote(cell, str(out.resolve()), threads)] = cell
+            bar.set_postfix_str(_running([c.name for c in in_flight.values()]))
+            done, _ = ray.wait(list(in_flight), num_returns=1)
+            for ref in done:
+                cell = in_flight.pop(ref)
+                try:
+                    result = ray.get(ref)
+                    report.finished[cell.name] = result["seconds"]
+                    resumed = ", resumed" if result["resumed"] else ""
+                    bar.write(f"done   {cell.name} ({result['seconds']:.0f} s{resumed})")
+                except Exception as e:  # noqa: BLE001 - a failed cell must not stop the others
+                    cause = getattr(e, "cause", None) or e
+                    lines = str(cause).strip().splitlines()
+                    report.failed[cell.name] = f"{type(cause).__name__}: {lines[-1] if lines else ''}"
+                    bar.write(f"FAILED {cell.name}: {report.failed[cell.name]} (log: {log_path(out, cell)})")
+                bar.update(1)
+        bar.set_postfix_str("")
+        bar.close()
+    finally:
+        if started_here:
+            ray.shutdown()
+    return report

@@ -1,0 +1,69 @@
+"""Methods a sweep can run: each is a recipe entry plus the overrides that make it that method.
+
+A :class:`MethodSpec` says which entry point runs a cell (``pe_rlhf`` / ``haim_drl``: the proxy-Q recipe
+:func:`pe_rlhf.training.recipe.main` with that recipe's ``config.yaml``; a baseline name such as ``sac_rs``:
+:func:`pe_rlhf.baselines.main`; ``evaluate``: no training, the registered ``policy`` is evaluated on the
+recipe's test scenes), the overrides that turn the recipe into the method (HACO = PE-RLHF without physics
+and selector), which config key the sweep's mentor axis sets (None: the method has no mentor, the axis
+does not apply) and whether the sweep's parameter axis applies.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+PROXY_Q_RECIPES = ("pe_rlhf", "haim_drl")  # pe_rlhf.training.recipe.main with recipes/<name>/config.yaml
+EVALUATE = "evaluate"
+
+
+@dataclass(frozen=True)
+class MethodSpec:
+    """``name`` (the row label and cell-name prefix), ``recipe`` (``pe_rlhf``, ``haim_drl``, a
+    :data:`pe_rlhf.baselines.METHODS` key, or ``evaluate``), ``overrides`` (recipe config ``key=value``),
+    ``policy`` (``evaluate`` only: a registered evaluation policy), ``mentor_key`` (the config key the
+    mentor axis sets; None: no mentor) and ``parameters`` (False: the parameter axis does not apply)."""
+
+    name: str
+    recipe: str
+    overrides: tuple[str, ...] = ()
+    policy: str | None = None
+    mentor_key: str | None = "mentor.name"
+    parameters: bool = True
+    seeded_mentor: bool = field(default=True, compare=False)  # the cell's seed also seeds the mentor
+
+    @property
+    def trains(self) -> bool:
+        return self.recipe != EVALUATE
+
+
+def _baselines() -> dict[str, MethodSpec]:
+    from pe_rlhf.baselines import METHODS
+
+    methods = {}
+    for key, method in METHODS.items():
+        if method.family == "hil":
+            mentor_key = "mentor.name"
+        elif method.family in ("offline", "gail"):
+            mentor_key = "data.mentor"  # the demonstrations' driver
+        else:
+            mentor_key = None
+        methods[key.replace("_", "-")] = MethodSpec(key.replace("_", "-"), key, mentor_key=mentor_key,
+                                                    seeded_mentor=mentor_key == "mentor.name")
+    return methods
+
+
+def builtin_methods() -> dict[str, MethodSpec]:
+    """The methods a sweep config may name without defining them."""
+    return {
+        "pe-rlhf": MethodSpec("pe-rlhf", "pe_rlhf"),
+        "haco": MethodSpec("haco", "pe_rlhf", ("physics.enabled=false", "selector.enabled=false")),
+        "haim-drl": MethodSpec("haim-drl", "haim_drl"),
+        "idm-mobil": MethodSpec("idm-mobil", EVALUATE, policy="idm-mobil", mentor_key=None, parameters=False),
+        **_baselines(),
+    }
+
+
+def recipe_names() -> tuple[str, ...]:
+    from pe_rlhf.baselines import METHODS
+
+    return (*PROXY_Q_RECIPES, *METHODS, EVALUATE)

@@ -1,0 +1,179 @@
+"""A sweep folder's tables: per-cell metrics (``cells.csv``) and mean ± std over seeds per
+method x mentor x parameter row (``summary.csv``, ``summary.md``).
+
+A cell's numbers come from its ``final_eval.json`` (test metrics on ``eval.split``, the training totals)
+and the last row of its ``metrics.csv`` (the cumulative training rates the recipe logs). Missing numbers
+(an evaluation-only cell has no training) are NaN in the CSVs and ``—`` in the Markdown. The std is the
+population std over the row's finished seeds (``numpy.std``), as ``benchmarks/train_seeds.py`` reports.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pe_rlhf.sweeps.cells import CELL_FILE, FINAL_EVAL, NONE, Cell, cell_dir
+
+NAN = float("nan")
+SUMMARY_MD, SUMMARY_CSV, CELLS_CSV = "summary.md", "summary.csv", "cells.csv"
+
+
+@dataclass(frozen=True)
+class Metric:
+    """A summary column: its header, number format and how to read it from ``(final_eval, last_csv_row)``."""
+
+    label: str
+    fmt: str
+    read: Callable[[dict, dict], float]
+
+
+def _test(key: str) -> Callable[[dict, dict], float]:
+    return lambda final, last: float((final.get(key) or {}).get("mean", NAN))
+
+
+def _logged(column: str, training_key: str | None = None) -> Callable[[dict, dict], float]:
+    def read(final: dict, last: dict) -> float:
+        if column in last:
+            return float(last[column])
+        training = final.get("training") or {}
+        return float(training.get(training_key, NAN)) if training_key else NAN
+    return read
+
+
+METRICS: dict[str, Metric] = {
+    "success_rate": Metric("test success", ".2f", _test("success_rate")),
+    "safety_violation": Metric("test safety viol.", ".2f", _test("safety_violation")),
+    "episodic_return": Metric("test return", ".1f", _test("episodic_return")),
+    "route_completion": Metric("test route completion", ".2f", _test("route_completion")),
+    "travel_distance": Metric("test distance m", ".1f", _test("travel_distance")),
+    "travel_velocity": Metric("test velocity km/h", ".1f", _test("travel_velocity")),
+    "overtake_count": Metric("test overtakes", ".2f", _test("overtake_count")),
+    "train_safety_violations": Metric("train safety viol.", ".1f",
+                                      _logged("train/safety_violations_total", "safety_violations")),
+    "takeover_data_usage": Metric("takeover data usage", ".2f", _logged("train/takeover_data_usage")),
+    "value_takeover_rate": Metric("value-takeover rate", ".2f", _logged("train/value_takeover_rate")),
+    "train_wall_minutes": Metric("train wall min", ".1f",
+                                 lambda final, last: float(last["wall_time"]) / 60 if "wall_time" in last else NAN),
+}
+DEFAULT_METRICS = ("success_rate", "safety_violation", "train_safety_violations", "takeover_data_usage",
+                   "value_takeover_rate")
+
+
+def _last_csv_row(path: Path) -> dict[str, float]:
+    if not path.is_file():
+        return {}
+    from pe_rlhf.training.metrics_logger import read_metrics_csv
+
+    _, rows = read_metrics_csv(path)
+    return rows[-1] if rows else {}
+
+
+def read_cell(directory: str | Path) -> dict[str, float]:
+    """Every :data:`METRICS` value of a finished cell folder (NaN where it has none); {} if unfinished."""
+    directory = Path(directory)
+    if not (directory / FINAL_EVAL).is_file():
+        return {}
+    final = json.loads((directory / FINAL_EVAL).read_text())
+    last = _last_csv_row(directory / "metrics.csv")
+    values = {}
+    for key, metric in METRICS.items():
+        try:
+            values[key] = metric.read(final, last)
+        except (TypeError, ValueError):
+            values[key] = NAN
+    return values
+
+
+def cell_rows(out: str | Path, cells: Sequence[Cell]) -> list[dict[str, Any]]:
+    """One dict per cell: name, method, mentor, parameter, seed, status and every metric."""
+    rows = []
+    for cell in cells:
+        directory = cell_dir(Path(out), cell)
+        values = read_cell(directory)
+        status = "finished" if values else ("unfinished" if (directory / CELL_FILE).is_file() else "not started")
+        rows.append({"cell": cell.name, "method": cell.method.name, "mentor": cell.mentor,
+                     "parameter": cell.parameter, "seed": cell.seed, "status": status,
+                     **{k: values.get(k, NAN) for k in METRICS}})
+    return rows
+
+
+def mean_std(values: Sequence[float]) -> dict[str, float]:
+    """Mean and population std of the finite values, and how many there were (NaN, NaN, 0 if none)."""
+    finite = [float(v) for v in values if v is not None and math.isfinite(float(v))]
+    if not finite:
+        return {"mean": NAN, "std": NAN, "n": 0}
+    return {"mean": float(np.mean(finite)), "std": float(np.std(finite)), "n": len(finite)}
+
+
+def aggregate(rows: Sequence[dict[str, Any]], metrics: Sequence[str]) -> list[dict[str, Any]]:
+    """Rows grouped by (method, mentor, parameter) in first-seen order; per metric ``{mean, std, n}``
+    over the finished seeds; ``seeds`` finished / ``cells`` in the group."""
+    groups: dict[tuple, list[dict]] = {}
+    for row in rows:
+        groups.setdefault((row["method"], row["mentor"], row["parameter"]), []).append(row)
+    table = []
+    for (method, mentor, parameter), members in groups.items():
+        done = [r for r in members if r["status"] == "finished"]
+        table.append({"method": method, "mentor": mentor, "parameter": parameter, "seeds": len(done),
+                      "cells": len(members), **{m: mean_std([r[m] for r in done]) for m in metrics}})
+    return table
+
+
+def _write_csv(path: Path, header: list[str], rows: list[list[Any]]) -> None:
+    with open(path, "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(header)
+        writer.writerows(rows)
+
+
+def _cell_text(stat: dict[str, float], fmt: str) -> str:
+    if not stat["n"]:
+        return "—"
+    return format(stat["mean"], fmt) if stat["n"] == 1 else f"{stat['mean']:{fmt}} ± {stat['std']:{fmt}}"
+
+
+def markdown_table(table: list[dict[str, Any]], metrics: Sequence[str]) -> str:
+    """The summary as a Markdown table; the mentor / parameter columns only when some row has one."""
+    axes = [a for a in ("mentor", "parameter") if any(r[a] != NONE for r in table)]
+    header = ["method", *axes, "seeds", *(METRICS[m].label for m in metrics)]
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    for r in table:
+        cells = [r["method"], *(r[a] for a in axes), f"{r['seeds']}/{r['cells']}",
+                 *(_cell_text(r[m], METRICS[m].fmt) for m in metrics)]
+        lines.append("| " + " | ".join(str(c) for c in cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def write_summary(out: str | Path, cells: Sequence[Cell], metrics: Sequence[str], title: str = "sweep",
+                  description: str = "", plots: bool = True) -> dict[str, Path]:
+    """``cells.csv``, ``summary.csv``, ``summary.md`` (and the plots, :mod:`pe_rlhf.sweeps.plots`) in ``out``."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    rows = cell_rows(out, cells)
+    keys = ["cell", "method", "mentor", "parameter", "seed", "status", *METRICS]
+    _write_csv(out / CELLS_CSV, keys, [[r[k] for k in keys] for r in rows])
+    table = aggregate(rows, metrics)
+    header = ["method", "mentor", "parameter", "seeds", "cells"]
+    _write_csv(out / SUMMARY_CSV, header + [f"{m}_{s}" for m in metrics for s in ("mean", "std")],
+               [[r[k] for k in header] + [r[m][s] for m in metrics for s in ("mean", "std")] for r in table])
+    finished = sum(r["status"] == "finished" for r in rows)
+    text = [f"# Sweep {title}", ""] + ([description, ""] if description else [])
+    text += [(f"{finished} of {len(rows)} cells finished; mean ± std over the finished seeds (population std); "
+              "test metrics on the recipe's eval split, training numbers as logged at the end of training."), "",
+             markdown_table(table, metrics)]
+    paths = {"cells": out / CELLS_CSV, "summary_csv": out / SUMMARY_CSV, "summary_md": out / SUMMARY_MD}
+    if plots:
+        from pe_rlhf.sweeps.plots import plot_sweep
+
+        images = plot_sweep(out, cells, table, metrics)
+        paths.update(images)
+        text += [""] + [f"![{name}]({path.name})" for name, path in images.items()]
+    (out / SUMMARY_MD).write_text("\n".join(text).rstrip() + "\n")
+    return paths

@@ -1,0 +1,246 @@
+"""Sweeps: grid expansion and naming, config errors naming the field, bookkeeping (finished cells are not
+rerun, crashed ones resume), summary aggregation from synthetic cell folders, and a 2-cell sweep on local
+Ray with tiny budgets."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from pathlib import Path
+
+import pytest
+
+from pe_rlhf.sweeps import SweepConfigError, check_cell_configs, expand, load_sweep, parse_sweep, run_sweep
+from pe_rlhf.sweeps.cells import CELL_FILE, FINAL_EVAL, attempt_argv, check_folder, plan, write_record
+from pe_rlhf.sweeps.execution import run_cells
+from pe_rlhf.sweeps.summary import aggregate, cell_rows, mean_std, write_summary
+
+ROOT = Path(__file__).resolve().parents[1]
+SMOKE = ["profile=smoke"]
+
+
+def _spec(**changes):
+    raw = {"name": "t", "base": SMOKE,
+           "methods": ["pe-rlhf", {"name": "haco", "parameters": False}, "idm-mobil"],
+           "mentors": ["professional", {"label": "collapse", "name": "collapsing", "kwargs": {"switch_step": 100}}],
+           "parameters": {"selector.epsilon_select": [0.25, 1]}, "seeds": [0, 1]}
+    raw.update(changes)
+    return parse_sweep({k: v for k, v in raw.items() if v is not None})
+
+
+# -- grid ----------------------------------------------------------------------------------------
+def test_grid_expansion_names_and_overrides():
+    cells = expand(_spec())
+    names = [c.name for c in cells]
+    assert names == [c.name for c in expand(_spec())]  # deterministic
+    assert len(names) == len(set(names)) == 2 * 2 * 2 + 2 * 2 + 2  # pe-rlhf m x p x s, haco m x s, idm-mobil s
+    assert names[:3] == ["pe-rlhf__professional__epsilon_select=0.25__s0",
+                         "pe-rlhf__professional__epsilon_select=0.25__s1",
+                         "pe-rlhf__professional__epsilon_select=1__s0"]
+    assert names[-3:] == ["haco__collapse__s1", "idm-mobil__s0", "idm-mobil__s1"]
+    by_name = {c.name: c for c in cells}
+    cell = by_name["pe-rlhf__collapse__epsilon_select=1__s1"]
+    assert cell.overrides == ("profile=smoke", "mentor.name=collapsing", "mentor.kwargs.switch_step=100",
+                              "selector.epsilon_select=1", "seed=1", "mentor.seed=1")
+    assert (cell.method.name, cell.mentor, cell.parameter, cell.seed) == ("pe-rlhf", "collapse", "epsilon_select=1", 1)
+    assert by_name["haco__professional__s0"].overrides == (
+        "profile=smoke", "physics.enabled=false", "selector.enabled=false", "mentor.name=professional", "seed=0",
+        "mentor.seed=0")
+    idm = by_name["idm-mobil__s1"]
+    assert idm.overrides == ("profile=smoke", "seed=1") and idm.method.recipe == "evaluate"
+    check_cell_configs(cells)  # every override is a valid recipe config
+
+
+def test_variants_cross_parameters_and_baselines_map_to_their_recipe():
+    spec = _spec(methods=["pe-rlhf", "sac-rs"], mentors=["amateur"], variants={"a": ["optim.lr=0.001"], "b": []},
+                 parameters={"loss.gamma": [0.9]}, seeds=[3])
+    cells = {c.name: c for c in expand(spec)}
+    assert set(cells) == {"pe-rlhf__amateur__a+gamma=0.9__s3", "pe-rlhf__amateur__b+gamma=0.9__s3",
+                          "sac-rs__a+gamma=0.9__s3", "sac-rs__b+gamma=0.9__s3"}
+    sac = cells["sac-rs__a+gamma=0.9__s3"]
+    assert sac.method.recipe == "sac_rs" and sac.overrides == ("profile=smoke", "optim.lr=0.001", "loss.gamma=0.9",
+                                                               "seed=3")
+    check_cell_configs(list(cells.values()))
+
+
+def test_named_sweep_configs_load_and_validate():
+    counts = {}
+    for path in sorted((ROOT / "recipes" / "sweeps").glob("*.yaml")):
+        spec = load_sweep(path)
+        cells = expand(spec)
+        check_cell_configs(cells)
+        counts[spec.name] = len(cells)
+    assert counts == {"epsilon_sensitivity": 6 * 2 * 3 + 3, "loss_ablations": 12, "lower_bound": 2 * 2 * 3 + 3,
+                      "mentor_proficiency": 12, "physics_ablation": 9 + 3, "warmup": 15}
+
+
+# -- errors --------------------------------------------------------------------------------------
+@pytest.mark.parametrize("changes, field", [
+    ({"metric": ["success_rate"]}, "metric"),
+    ({"methods": ["pe-rlhf", "pe-rlfh"]}, r"methods\[1\]"),
+    ({"methods": [{"name": "x", "recipe": "nope"}]}, r"methods\[0\]\.recipe"),
+    ({"methods": [{"name": "x", "method": "haco", "overides": []}]}, r"methods\[0\]\.overides"),
+    ({"methods": ["haco", "haco"]}, "methods"),
+    ({"mentors": [{"name": "amateur", "kwrgs": {}}]}, r"mentors\[0\]\.kwrgs"),
+    ({"mentors": ["amateur", "amateur"]}, "mentors"),
+    ({"seeds": [0, 0]}, "seeds"),
+    ({"seeds": [-1]}, "seeds"),
+    ({"parameters": {"selector.epsilon_select": 0.5}}, r"parameters\.selector\.epsilon_select"),
+    ({"variants": {"a/b": []}}, r"variants\.a/b"),
+    ({"base": ["profile"]}, r"base\[0\]"),
+    ({"metrics": ["succes_rate"]}, "metrics"),
+    ({"resources": {"num_cpus": 0}}, r"resources\.num_cpus"),
+])
+def test_bad_sweep_fields_are_named(changes, field):
+    with pytest.raises(SweepConfigError, match=field):
+        _spec(**changes)
+
+
+@pytest.mark.parametrize("changes, field", [
+    ({"base": ["profile=smoke", "optim.lrr=1"]}, "optim.lrr"),
+    ({"mentors": ["professionel"]}, "mentor.name"),
+    ({"parameters": {"selector.epsilon_select": ["high"]}}, "selector.epsilon_select"),
+    ({"mentors": [{"name": "collapsing", "kwargs": {"switch_at": 5}}]}, r"mentor\.kwargs\.switch_at"),
+])
+def test_bad_cell_configs_name_the_cell_and_field(changes, field):
+    with pytest.raises(SweepConfigError, match=rf"cell pe-rlhf__.*{field}"):
+        check_cell_configs(expand(_spec(**changes)))
+
+
+def test_bad_files(tmp_path):
+    with pytest.raises(SweepConfigError, match="not found"):
+        load_sweep(tmp_path / "missing.yaml")
+    (tmp_path / "bad.yaml").write_text("methods: [pe-rlhf\n")
+    with pytest.raises(SweepConfigError, match="not valid YAML"):
+        load_sweep(tmp_path / "bad.yaml")
+    (tmp_path / "named.yaml").write_text("methods: [pe-rlhf]\nseeds: [0]\n")
+    assert load_sweep(tmp_path / "named.yaml").name == "named"
+
+
+def test_cli_dry_run_and_errors(tmp_path, capsys):
+    from pe_rlhf.cli import main
+
+    config = tmp_path / "eps.yaml"
+    config.write_text("base: [profile=smoke]\nmethods: [pe-rlhf, idm-mobil]\nmentors: [amateur]\nseeds: [0, 1]\n"
+                      "parameters: {selector.epsilon_select: [0, 1.5]}\n")
+    assert main(["sweep", str(config), "--dry-run", "--out", str(tmp_path / "out")]) == 0
+    printed = capsys.readouterr().out
+    assert "sweep eps: 6 cells (0 finished, 0 to resume, 6 to run)" in printed
+    assert "run      pe-rlhf__amateur__epsilon_select=1.5__s1: pe_rlhf profile=smoke mentor.name=amateur " \
+           "selector.epsilon_select=1.5 seed=1 mentor.seed=1" in printed
+    assert not (tmp_path / "out").exists()  # a dry run writes nothing
+    config.write_text("methods: [pe-rlhf]\nseeds: [0]\nmentors: [{name: amateur, kwargs: {action_noise: 2}}]\n")
+    with pytest.raises(SystemExit):
+        main(["sweep", str(config), "--dry-run"])
+    assert "cell pe-rlhf__amateur__s0" in (err := capsys.readouterr().err) and "action_noise" in err
+
+
+# -- bookkeeping ---------------------------------------------------------------------------------
+def test_finished_cells_are_skipped_and_crashed_ones_resume(tmp_path):
+    cells = expand(_spec(methods=["pe-rlhf"], mentors=None, parameters=None, seeds=[0, 1, 2]))
+    write_record(tmp_path, cells[0])
+    (tmp_path / cells[0].name / FINAL_EVAL).write_text("{}")
+    finished, todo = plan(tmp_path, cells)
+    assert [c.name for c in finished] == ["pe-rlhf__s0"] and [c.name for c in todo] == ["pe-rlhf__s1", "pe-rlhf__s2"]
+    report = run_cells(cells[:1], tmp_path, progress=False)  # nothing to run: Ray is never started
+    assert report.skipped == ["pe-rlhf__s0"] and not report.finished and not report.failed
+    # a crashed cell with a complete checkpoint resumes; one without starts over in an emptied folder
+    crashed, fresh = tmp_path / cells[1].name, tmp_path / cells[2].name
+    for d in (crashed, fresh):
+        (d / "checkpoints" / "ckpt_000000100").mkdir(parents=True)
+        (d / "config.yaml").write_text("seed: 1\n")
+        (d / CELL_FILE).write_text("{}")
+    (crashed / "checkpoints" / "ckpt_000000100" / "COMPLETE").write_text("")
+    assert attempt_argv(crashed, list(cells[1].overrides)) == (["--resume", str(crashed)], True)
+    argv, resumed = attempt_argv(fresh, list(cells[2].overrides))
+    assert not resumed and argv == [*cells[2].overrides, "--out", str(fresh)]
+    assert [p.name for p in fresh.iterdir()] == [CELL_FILE]
+    # a folder made by another config is refused, naming what differs
+    other = expand(_spec(methods=["pe-rlhf"], mentors=None, parameters=None, seeds=[0], base=["profile=cpu"]))[0]
+    with pytest.raises(SweepConfigError, match="overrides"):
+        check_folder(tmp_path, other)
+    (tmp_path / cells[0].name / CELL_FILE).unlink()  # someone else's run folder is never emptied
+    with pytest.raises(SweepConfigError, match="not made by a sweep"):
+        plan(tmp_path, cells)
+
+
+# -- summary -------------------------------------------------------------------------------------
+def _fake_cell(out: Path, cell, success: float | None, violations: float = 0.0, usage: float = 0.0) -> None:
+    write_record(out, cell)
+    if success is None:
+        return
+    final = {"success_rate": {"mean": success, "std": 0.0}, "safety_violation": {"mean": 1 - success, "std": 0.0},
+             "training": None if not cell.method.trains else {"safety_violations": violations}}
+    (out / cell.name / FINAL_EVAL).write_text(json.dumps(final))
+    if cell.method.trains:
+        with open(out / cell.name / "metrics.csv", "w") as f:
+            f.write("step,env_steps,wall_time,train/safety_violations_total,train/takeover_data_usage,"
+                    "train/value_takeover_rate,train/takeover_rate\n")
+            f.write(f"100,100,1.0,0,0.5,1.0,1.0\n200,200,2.0,{violations},{usage},0.5,0.4\n")
+
+
+def test_summary_aggregates_seeds_exactly(tmp_path):
+    cells = expand(_spec(methods=["pe-rlhf", "idm-mobil"], mentors=["amateur"],
+                         parameters={"selector.epsilon_select": [0.5]}, seeds=[0, 1, 2]))
+    pe, idm = cells[:3], cells[3:]
+    for cell, (success, violations, usage) in zip(pe, [(0.2, 10, 0.3), (0.4, 20, 0.2), (None, 0, 0)]):
+        _fake_cell(tmp_path, cell, success, violations, usage)
+    for cell in idm:
+        _fake_cell(tmp_path, cell, 0.3)
+    metrics = ["success_rate", "safety_violation", "train_safety_violations", "takeover_data_usage"]
+    table = aggregate(cell_rows(tmp_path, cells), metrics)
+    assert [(r["method"], r["mentor"], r["parameter"], r["seeds"], r["cells"]) for r in table] == [
+        ("pe-rlhf", "amateur", "epsilon_select=0.5", 2, 3), ("idm-mobil", "-", "-", 3, 3)]
+    pe_row, idm_row = table
+    assert pe_row["success_rate"] == {"mean": pytest.approx(0.3), "std": pytest.approx(0.1), "n": 2}
+    assert pe_row["train_safety_violations"] == {"mean": 15.0, "std": 5.0, "n": 2}
+    assert pe_row["takeover_data_usage"]["mean"] == pytest.approx(0.25)
+    assert idm_row["success_rate"] == {"mean": pytest.approx(0.3), "std": 0.0, "n": 3}
+    assert idm_row["train_safety_violations"]["n"] == 0  # evaluation only: no training numbers
+    assert mean_std([1.0, float("nan"), 3.0]) == {"mean": 2.0, "std": 1.0, "n": 2}
+
+    paths = write_summary(tmp_path, cells, metrics, title="t", plots=True)
+    md = (tmp_path / "summary.md").read_text()
+    assert "| pe-rlhf | amateur | epsilon_select=0.5 | 2/3 | 0.30 ± 0.10 | 0.70 ± 0.10 | 15.0 ± 5.0 | 0.25 ± 0.05 |" in md
+    assert "| idm-mobil | - | - | 3/3 | 0.30 ± 0.00 | 0.70 ± 0.00 | — | — |" in md
+    with open(tmp_path / "summary.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert float(rows[0]["success_rate_mean"]) == pytest.approx(0.3) and float(rows[0]["success_rate_std"]) == \
+        pytest.approx(0.1) and math.isnan(float(rows[1]["train_safety_violations_mean"]))
+    with open(tmp_path / "cells.csv") as f:
+        statuses = [r["status"] for r in csv.DictReader(f)]
+    assert statuses == ["finished", "finished", "unfinished", "finished", "finished", "finished"]
+    assert {"summary", "value_takeover_rate", "takeover_rate"} <= set(paths)
+    assert all(paths[k].stat().st_size > 0 for k in ("summary", "value_takeover_rate", "takeover_rate"))
+
+
+# -- a real sweep on local Ray ---------------------------------------------------------------------
+def test_two_cell_sweep_on_local_ray(tmp_path):
+    ray = pytest.importorskip("ray")
+    import importlib.util
+
+    runs = importlib.util.spec_from_file_location("reliability_runs", ROOT / "tests" / "reliability" / "_runs.py")
+    module = importlib.util.module_from_spec(runs)
+    runs.loader.exec_module(module)
+    TINY = module.TINY  # the reliability tests' few-second training runs
+
+    spec = parse_sweep({"name": "smoke", "base": [*TINY, "collector.total_frames=100"], "seeds": [0],
+                        "methods": ["pe-rlhf", "haco"],
+                        "metrics": ["success_rate", "train_safety_violations", "value_takeover_rate"]})
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    try:
+        report = run_sweep(spec, tmp_path, progress=False)
+        assert report.failed == {} and sorted(report.finished) == ["haco__s0", "pe-rlhf__s0"]
+        for name in report.finished:
+            for output in (FINAL_EVAL, "metrics.csv", "config.yaml", CELL_FILE):
+                assert (tmp_path / name / output).is_file(), (name, output)
+            assert (tmp_path / "logs" / f"{name}.log").stat().st_size > 0
+        assert "physics:\n  enabled: false" in (tmp_path / "haco__s0" / "config.yaml").read_text()
+        for output in ("summary.md", "summary.csv", "cells.csv", "summary.png"):
+            assert (tmp_path / output).is_file(), output
+        assert "| pe-rlhf | 1/1 |" in (tmp_path / "summary.md").read_text()
+        again = run_sweep(spec, tmp_path, progress=False)
+        assert sorted(again.skipped) == ["haco__s0", "pe-rlhf__s0"] and not again.finished and not again.failed
+    finally:
+        ray.shutdown()
