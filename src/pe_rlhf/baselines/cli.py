@@ -19,7 +19,7 @@ from pathlib import Path
 from pe_rlhf.baselines.config import METHODS, load_baseline_config
 from pe_rlhf.baselines.loop import train_baseline
 from pe_rlhf.baselines.plots import plot_baseline_curves
-from pe_rlhf.evaluation import print_summary, write_json
+from pe_rlhf.evaluation import write_json
 from pe_rlhf.training.config import save_config, to_container
 from pe_rlhf.training.metrics_logger import CSV_NAME, MetricsLogger
 
@@ -41,7 +41,8 @@ def main(method: str, argv: list[str] | None = None) -> dict:
     parser.add_argument("--compare", default=None, metavar="POLICY",
                         help="also evaluate a registered policy (e.g. idm-mobil) on the same test scenes")
     args = parser.parse_args(argv)
-    from pe_rlhf.training.trainer import evaluate_reference, registered_policies
+    from pe_rlhf.training.recipe import report_final
+    from pe_rlhf.training.trainer import registered_policies
 
     if args.compare and args.compare not in registered_policies():  # fail now, not after training
         parser.error(f"--compare {args.compare!r}: allowed: {sorted(registered_policies())}")
@@ -62,11 +63,5 @@ def main(method: str, argv: list[str] | None = None) -> dict:
     if lg.csv:
         plot_baseline_curves(out / CSV_NAME, out, cfg.constraint.cost_limit if "constraint" in cfg else None,
                              steps_are_updates=METHODS[method].family == "offline")
-    rows = [(name, final)]
-    if args.compare:
-        reference = evaluate_reference(args.compare, cfg)
-        write_json(out / f"reference_{args.compare}.json", reference)
-        rows.insert(0, (args.compare, reference))
-    print_summary(rows)
-    print(f"outputs in {out}")
+    report_final(out, name, final, args.compare, cfg)
     return final

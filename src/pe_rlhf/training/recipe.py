@@ -49,11 +49,17 @@ def main(argv: list[str] | None = None, *, config_path: str | Path | None = None
         final = train(cfg, out, logger, checkpoint_dir=out / "checkpoints", resume=bool(args.resume))
     write_json(out / "final_eval.json", final)
     plot_learning_curves(out / "metrics.csv", out)
-    rows = [(method, final)]
-    if args.compare:
-        reference = evaluate_reference(args.compare, cfg)
-        write_json(out / f"reference_{args.compare}.json", reference)
-        rows.insert(0, (args.compare, reference))
+    report_final(out, method, final, args.compare, cfg)
+    return final
+
+
+def report_final(out: Path, name: str, final: dict, compare: str | None, cfg) -> None:
+    """Print the final table (with ``compare``, a reference policy on the same scenes, saved as
+    ``reference_<policy>.json``) and where the outputs are; shared by every recipe's entry point."""
+    rows = [(name, final)]
+    if compare:
+        reference = evaluate_reference(compare, cfg)
+        write_json(out / f"reference_{compare}.json", reference)
+        rows.insert(0, (compare, reference))
     print_summary(rows)
     print(f"outputs in {out}")
-    return final
