@@ -387,6 +387,23 @@ def test_obstacles_are_the_physics_policy_blind_spot(see_obstacles):
         assert ego_lane_slot(env)[0] != 1
 
 
+def test_stop_for_obstacles_brakes_behind_the_obstacle_and_never_passes_it():
+    """The paper's IDM-MOBIL failure: IDM stops for a broken-down car, MOBIL does not pass it."""
+    env = straight_env(scene_seed=0)
+    obstacle = add_obstacle(env, env.progress + 60.0, lane=1)
+    s_obstacle = progress_of(env, obstacle)
+    policy = IDMMobilPolicy(PhysicsConfig(stop_for_obstacles=True))
+    policy.reset()
+    actions, info, terminated = drive(env, policy, 200)  # 20 s
+    assert not terminated and not info["crash_object"] and not info["crash_vehicle"]
+    assert len(actions) == 200
+    assert actions[:, 1].min() < -0.2  # it brakes for what IDM now sees
+    gap = s_obstacle - env.progress - CAR_LENGTH
+    assert 0.0 < gap < 15.0  # stopped behind it, about IDM's jam distance s0 = 10 m away
+    assert env.vehicle.speed < 0.5
+    assert ego_lane_slot(env)[0] == 1  # MOBIL still weighs vehicles only: no lane change to pass
+
+
 # --------------------------------------------------------------------------- 8. ablation switches
 
 

@@ -316,4 +316,5 @@ def test_selector_needs_warmup():
 def test_physics_config_follows_the_switches():
     cfg = load_config(overrides=["physics.use_mobil=false", "physics.see_obstacles=true"])
     phy = physics_config(cfg)
-    assert (phy.use_idm, phy.use_mobil, phy.see_obstacles) == (True, False, True)
+    assert (phy.use_idm, phy.use_mobil, phy.see_obstacles, phy.stop_for_obstacles) == (True, False, True, False)
+    assert physics_config(load_config(overrides=["physics.stop_for_obstacles=true"])).stop_for_obstacles

@@ -209,8 +209,15 @@ def add_sweep_parser(subparsers: argparse._SubParsersAction) -> argparse.Argumen
     return add(subparsers)
 
 
+def add_compare_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    """``pe-rlhf compare``: see :mod:`pe_rlhf.compare.cli`."""
+    from pe_rlhf.compare.cli import add_compare_parser as add
+
+    return add(subparsers)
+
+
 SUBCOMMANDS: dict[str, AddParser] = {"evaluate": add_evaluate_parser, "demo": add_demo_parser,
-                                     "sweep": add_sweep_parser}
+                                     "sweep": add_sweep_parser, "compare": add_compare_parser}
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -104,6 +104,7 @@ PolicyFactory = Callable[[int], Policy]
 
 POLICY_FACTORIES: dict[str, PolicyFactory] = {
     "idm-mobil": lambda seed: PhysicsPolicyAdapter(PhysicsConfig()),
+    "idm-mobil-stop": lambda seed: PhysicsPolicyAdapter(PhysicsConfig(stop_for_obstacles=True)),
     "idm-mobil-oracle": lambda seed: PhysicsPolicyAdapter(PhysicsConfig(see_obstacles=True)),
     "random": lambda seed: RandomPolicy(seed),
 }

@@ -3,7 +3,15 @@
 It reads the simulator's state through :mod:`pe_rlhf.physics.perception` and returns
 the normalised ``[steering, throttle]`` action every other policy speaks. As in the
 paper it reasons about **vehicles only** by default: static obstacles are its known
-blind spot (``see_obstacles=True`` lifts it). Three ways to use it:
+blind spot. Two switches change that:
+
+- ``stop_for_obstacles=True``: IDM treats an obstacle in its lane as a standing leader and
+  brakes for it, but MOBIL still weighs vehicles only, so it never changes lane to pass one:
+  the car stops behind a broken-down vehicle and waits (the failure the paper describes for its
+  IDM-MOBIL, "often becomes stuck ... failing to take measures such as lane changes");
+- ``see_obstacles=True``: both see obstacles (IDM brakes, MOBIL changes lane around them).
+
+Three ways to use it:
 
 - ``IDMMobilPolicy(...)(env)`` — a plain function of the simulator state;
 - :class:`PhysicsPolicyModule` — a TorchRL/tensordict module writing ``"action"``;
@@ -38,7 +46,8 @@ class PhysicsConfig:
 
     idm: IDMParams = field(default_factory=IDMParams)
     mobil: MOBILParams = field(default_factory=MOBILParams)
-    see_obstacles: bool = False
+    see_obstacles: bool = False  # IDM and MOBIL both see obstacles (brake and pass)
+    stop_for_obstacles: bool = False  # IDM brakes for obstacles, MOBIL ignores them (stuck behind)
     use_idm: bool = True  # False: cruise at the desired speed, ignoring leaders ("MOBIL only")
     use_mobil: bool = True  # False: never change lane ("IDM only")
 
@@ -66,14 +75,18 @@ class IDMMobilPolicy:
         slot, offset = ego_lane_slot(env)
         if env.road is not self._road:  # every env.reset builds a new road: a new episode
             self._road, self.target_lane, self._last_decision = env.road, slot, -math.inf
-        items = neighbours(env, include_obstacles=self.config.see_obstacles)
+        items = neighbours(env, include_obstacles=self.config.see_obstacles or self.config.stop_for_obstacles)
+        if self.config.stop_for_obstacles and not self.config.see_obstacles:
+            lateral_items = [n for n in items if not n.is_obstacle]  # MOBIL's view: vehicles only
+        else:
+            lateral_items = items
         v0 = self.desired_speed(env)
-        if abs(self.target_lane - slot) > 1 or (self.target_lane != slot and not self._target_safe(env, items)):
+        if abs(self.target_lane - slot) > 1 or (self.target_lane != slot and not self._target_safe(env, lateral_items)):
             self.target_lane = slot  # moved by someone else, or the gap closed: re-plan from here
         if self.config.use_mobil and self.target_lane == slot and abs(offset) < 0.6:
             if env.time - self._last_decision >= self.config.mobil.lane_change_delay:
                 self._last_decision = env.time
-                self.target_lane = self._mobil(env, items, slot, v0)
+                self.target_lane = self._mobil(env, lateral_items, slot, v0)
         accel = self._idm(env, items, slot, v0)
         if self.target_lane != slot:
             accel = min(accel, self._idm(env, items, self.target_lane, v0))

@@ -38,12 +38,13 @@ def _test(key: str) -> Callable[[dict, dict], float]:
     return lambda final, last: float((final.get(key) or {}).get("mean", NAN))
 
 
-def _logged(column: str, training_key: str | None = None) -> Callable[[dict, dict], float]:
+def _logged(column: str, *training_keys: str) -> Callable[[dict, dict], float]:
+    """``column`` of the last metrics row, else the first of ``training_keys`` in ``final["training"]``."""
     def read(final: dict, last: dict) -> float:
         if column in last:
             return float(last[column])
         training = final.get("training") or {}
-        return float(training.get(training_key, NAN)) if training_key else NAN
+        return next((float(training[k]) for k in training_keys if training.get(k) is not None), NAN)
     return read
 
 
@@ -75,20 +76,25 @@ def _last_csv_row(path: Path) -> dict[str, float]:
     return rows[-1] if rows else {}
 
 
-def read_cell(directory: str | Path) -> dict[str, float]:
-    """Every :data:`METRICS` value of a finished cell folder (NaN where it has none); {} if unfinished."""
+def metric_values(final: dict, last: dict, metrics: dict[str, Metric] = METRICS) -> dict[str, float]:
+    """Every metric's value from a ``final_eval.json`` dict and the last ``metrics.csv`` row (NaN where none)."""
+    values = {}
+    for key, metric in metrics.items():
+        try:
+            values[key] = metric.read(final, last)
+        except (TypeError, ValueError, AttributeError):
+            values[key] = NAN
+    return values
+
+
+def read_cell(directory: str | Path, metrics: dict[str, Metric] = METRICS) -> dict[str, float]:
+    """Every ``metrics`` value (default :data:`METRICS`) of a finished cell folder (NaN where it has none);
+    {} if unfinished."""
     directory = Path(directory)
     if not (directory / FINAL_EVAL).is_file():
         return {}
     final = json.loads((directory / FINAL_EVAL).read_text())
-    last = _last_csv_row(directory / "metrics.csv")
-    values = {}
-    for key, metric in METRICS.items():
-        try:
-            values[key] = metric.read(final, last)
-        except (TypeError, ValueError):
-            values[key] = NAN
-    return values
+    return metric_values(final, _last_csv_row(directory / "metrics.csv"), metrics)
 
 
 def cell_rows(out: str | Path, cells: Sequence[Cell]) -> list[dict[str, Any]]:

@@ -41,7 +41,7 @@ DEFAULTS: dict[str, Any] = {
     "profile": "paper",
     "env": {},
     "mentor": {"name": "professional", "seed": 0, "kwargs": {}},
-    "physics": {"enabled": True, "see_obstacles": False, "use_idm": True, "use_mobil": True},
+    "physics": {"enabled": True, "see_obstacles": False, "stop_for_obstacles": False, "use_idm": True, "use_mobil": True},
     "selector": {"enabled": True, "epsilon_select": 0.5, "variance_threshold": None, "num_members": 5,
                  "hidden": [256, 256], "warmup_fit_steps": 3000, "refresh_every": 0, "refresh_steps": 500,
                  "fit_loss": "mean", "target_noise": 0.1, "lr": 3.0e-4, "batch_size": 256},
@@ -336,7 +336,7 @@ RULES: dict[str, Rule] = {
     "seed": _int(0),
     "profile": _choice(*PROFILES),
     "mentor.name": _mentor_name, "mentor.seed": _int(0),
-    **{f"physics.{k}": _bool for k in ("enabled", "see_obstacles", "use_idm", "use_mobil")},
+    **{f"physics.{k}": _bool for k in ("enabled", "see_obstacles", "stop_for_obstacles", "use_idm", "use_mobil")},
     "selector.enabled": _bool, "selector.epsilon_select": _number(),
     "selector.variance_threshold": _optional(_number(0)), "selector.num_members": _int(1),
     "selector.hidden": _hidden, "selector.warmup_fit_steps": _int(0), "selector.refresh_every": _int(0),
@@ -537,7 +537,8 @@ def physics_config(cfg: DictConfig):
     from pe_rlhf.physics.policy import PhysicsConfig
 
     p = cfg.physics
-    return PhysicsConfig(see_obstacles=p.see_obstacles, use_idm=p.use_idm, use_mobil=p.use_mobil)
+    return PhysicsConfig(see_obstacles=p.see_obstacles, stop_for_obstacles=p.stop_for_obstacles,
+                         use_idm=p.use_idm, use_mobil=p.use_mobil)
 
 
 def to_container(cfg: DictConfig) -> dict[str, Any]:

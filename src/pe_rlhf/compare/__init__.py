@@ -1,0 +1,39 @@
+"""``pe-rlhf compare``: the spec's Table 1 from finished runs, as Markdown, CSV and learning curves.
+
+    pe-rlhf compare --row PE-RLHF=runs/lanes --row HACO=runs/haco_lanes \\
+        --eval IDM-MOBIL=docs/results/idm-mobil_test.json --out runs/table1
+
+Parts: :mod:`~pe_rlhf.compare.rows` (which run folders / evaluation JSONs make each row, labels, order),
+:mod:`~pe_rlhf.compare.table` (the columns, read with :mod:`pe_rlhf.sweeps.summary`'s readers; mean ± std
+over seeds; ``table.md``, ``table.csv``), :mod:`~pe_rlhf.compare.plots` (``learning_curves.png``) and
+:mod:`~pe_rlhf.compare.cli`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+from pe_rlhf.compare.plots import LEARNING_CURVES_PNG, plot_learning_curves
+from pe_rlhf.compare.rows import CompareError, Row, Source, collect_rows, infer_label
+from pe_rlhf.compare.table import COLUMNS, aggregate_rows, markdown_table, write_table
+
+
+def write_comparison(out: str | Path, runs: Sequence[str] = (), evaluations: Sequence[str] = (),
+                     globs: Sequence[str] = (), order: list[str] | None = None, title: str = "Table 1",
+                     plot: bool = True) -> tuple[dict[str, Path], str, list[str]]:
+    """Collect the rows (``--row`` / ``--eval`` / ``--glob`` specs), write ``table.md``, ``table.csv`` and
+    (``plot``) ``learning_curves.png`` into ``out``; returns ``({name: path}, the Markdown table, notes)``.
+    CompareError naming the bad path or spec."""
+    rows, notes = collect_rows(list(runs), list(evaluations), list(globs), order)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    image = plot_learning_curves(out / LEARNING_CURVES_PNG, rows) if plot else None
+    paths, md = write_table(out, rows, title=title, image=image.name if image else None, notes=notes)
+    if image:
+        paths["learning_curves"] = image
+    return paths, md, notes
+
+
+__all__ = ["COLUMNS", "CompareError", "Row", "Source", "aggregate_rows", "collect_rows", "infer_label",
+           "markdown_table", "plot_learning_curves", "write_comparison", "write_table"]

@@ -1,0 +1,158 @@
+"""The spec's Table 1 from collected rows: per seed the values (:data:`COLUMNS`, read as the sweep summary
+reads a cell: :mod:`pe_rlhf.sweeps.summary`), per row mean ± std over its seeds (population std),
+written as ``table.md`` and ``table.csv``.
+
+Columns, in the paper's order (spec section 7) with the training ones the issue adds:
+
+- ``takeover data``: ``train/takeover_data_usage`` of the last ``metrics.csv`` row (mentor steps / online
+  steps), else the training totals' ``takeover_data_usage``, else ``mentor_data_share`` (BC, CQL: 1.0; GAIL:
+  demonstrations / all data);
+- ``total data``: env steps of training (last ``env_steps``, else the totals') plus recorded demonstration
+  steps (``demo_steps``: BC, CQL, GAIL, HG-DAgger, IWR);
+- ``training time (min)``: the last ``wall_time`` / 60;
+- ``train safety viol.``: ``train/safety_violations_total`` (else the totals' ``safety_violations``) plus the
+  demonstrations' (``demo_safety_violations``), the safety cost of all the data the method used;
+- test return, success, safety, distance, velocity, overtakes: the ``final_eval.json`` means (the recipe's
+  ``eval.split``).
+
+An evaluation-only row (IDM-MOBIL) has the test columns only; a missing value is ``—`` in Markdown, NaN in
+the CSV. One seed shows its value without ``± std``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from pe_rlhf.compare.rows import TRAINED, Row
+from pe_rlhf.sweeps.summary import (
+    METRICS,
+    NAN,
+    Metric,
+    _cell_text,
+    _last_csv_row,
+    _logged,
+    _write_csv,
+    mean_std,
+    metric_values,
+)
+
+TABLE_MD, TABLE_CSV = "table.md", "table.csv"
+
+
+def _training(final: dict) -> dict:
+    return final.get("training") or {}
+
+
+def _env_steps(final: dict, last: dict) -> float:
+    if "env_steps" in last:
+        return float(last["env_steps"])
+    training = _training(final)
+    value = training.get("env_steps", training.get("frames"))
+    return float(value) if value is not None else NAN
+
+
+def _total_data(final: dict, last: dict) -> float:
+    return _env_steps(final, last) + float(_training(final).get("demo_steps") or 0.0)
+
+
+def _train_safety(final: dict, last: dict) -> float:
+    online = METRICS["train_safety_violations"].read(final, last)
+    return online + float(_training(final).get("demo_safety_violations") or 0.0)
+
+
+def _minutes(final: dict, last: dict) -> float:
+    if "wall_time" in last:
+        return float(last["wall_time"]) / 60
+    seconds = _training(final).get("wall_time_s")
+    return float(seconds) / 60 if seconds is not None else NAN
+
+
+def _test(key: str, label: str) -> Metric:
+    return Metric(label, ".2f", METRICS[key].read)
+
+
+COLUMNS: dict[str, Metric] = {
+    "takeover_data_usage": Metric("takeover data", ".2f", _logged("train/takeover_data_usage", "takeover_data_usage",
+                                                                  "mentor_data_share")),
+    "total_data": Metric("total data", ".0f", _total_data),
+    "train_minutes": Metric("training time (min)", ".1f", _minutes),
+    "train_safety_violations": Metric("train safety viol.", ".2f", _train_safety),
+    "episodic_return": _test("episodic_return", "test return"),
+    "success_rate": _test("success_rate", "success"),
+    "safety_violation": _test("safety_violation", "test safety"),
+    "travel_distance": _test("travel_distance", "distance m"),
+    "travel_velocity": _test("travel_velocity", "velocity km/h"),
+    "overtake_count": _test("overtake_count", "overtakes"),
+}
+TRAINING_COLUMNS = ("takeover_data_usage", "total_data", "train_minutes", "train_safety_violations")
+
+
+def seed_values(row: Row) -> list[dict[str, float]]:
+    """Every :data:`COLUMNS` value of each seed of ``row`` (training columns NaN for an evaluation row)."""
+    values = []
+    for source in row.sources:
+        csv_path = source.metrics_csv if row.kind == TRAINED else None
+        last = _last_csv_row(csv_path) if csv_path is not None else {}
+        seed = metric_values(source.final, last, COLUMNS)
+        if row.kind != TRAINED:
+            seed.update({k: NAN for k in TRAINING_COLUMNS})
+        values.append(seed)
+    return values
+
+
+def aggregate_rows(rows: list[Row]) -> list[dict[str, Any]]:
+    """Per row: label, kind, seeds (how many sources), sources and ``{mean, std, n}`` per column."""
+    table = []
+    for row in rows:
+        seeds = seed_values(row)
+        table.append({"label": row.label, "kind": row.kind, "seeds": len(row.sources),
+                      "sources": [str(s.path) for s in row.sources],
+                      **{k: mean_std([s[k] for s in seeds]) for k in COLUMNS}})
+    return table
+
+
+def markdown_table(table: list[dict[str, Any]]) -> str:
+    """``| method | seeds | takeover data | ... | overtakes |``, one line per row."""
+    header = ["method", "seeds", *(m.label for m in COLUMNS.values())]
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    for r in table:
+        cells = [r["label"], str(r["seeds"]), *(_cell_text(r[k], m.fmt) for k, m in COLUMNS.items())]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def _describe(row: Row) -> str:
+    """``label`` (kind, N episodes on SPLIT): `path` (seed S), ..."""
+    evaluated = sorted({(s.final.get("episodes"), (s.config.get("eval") or {}).get("split")) for s in row.sources},
+                       key=str)
+    episodes = ", ".join(f"{n} episodes" + (f" on {split}" if split else "") for n, split in evaluated if n)
+    seeds = ", ".join(f"`{s.path}`" + (f" (seed {s.config['seed']})" if "seed" in s.config else "")
+                      for s in row.sources)
+    return f"- **{row.label}** ({row.kind}{', ' + episodes if episodes else ''}): {seeds}"
+
+
+def write_table(out: str | Path, rows: list[Row], title: str = "Table 1", image: str | None = None,
+                notes: list[str] = ()) -> tuple[dict[str, Path], str]:
+    """``table.md`` and ``table.csv`` in ``out``; returns ``({name: path}, the Markdown table)``."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    table = aggregate_rows(rows)
+    header = ["method", "kind", "seeds", *(f"{k}_{s}" for k in COLUMNS for s in ("mean", "std")), "sources"]
+    _write_csv(out / TABLE_CSV, header,
+               [[r["label"], r["kind"], r["seeds"], *(r[k][s] for k in COLUMNS for s in ("mean", "std")),
+                 ";".join(r["sources"])] for r in table])
+    md = markdown_table(table)
+    text = [f"# {title}", "",
+            ("Mean ± std over seeds (population std; one seed: its value). Test metrics from each run's "
+            "`final_eval.json` (evaluation-only rows: the `pe-rlhf evaluate` JSON); takeover data = mentor steps "
+            "/ online steps (offline imitation: the demonstrations' share); total data = env steps + recorded "
+            "demonstration steps; training time = the last `wall_time`; train safety viol. = training "
+            "violations + the demonstrations'. — = no value."), "", md]
+    if image:
+        text += [f"![learning curves]({image})", ""]
+    text += ["## Rows", "", *(_describe(row) for row in rows)]
+    if notes:
+        text += ["", "## Notes", "", *(f"- {n}" for n in notes)]
+    (out / TABLE_MD).write_text("\n".join(text).rstrip() + "\n")
+    return {"table_md": out / TABLE_MD, "table_csv": out / TABLE_CSV}, md
