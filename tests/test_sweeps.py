@@ -136,6 +136,24 @@ def test_cli_dry_run_and_errors(tmp_path, capsys):
     assert "cell pe-rlhf__amateur__s0" in (err := capsys.readouterr().err) and "action_noise" in err
 
 
+def test_cli_only_selects_cells_by_name(tmp_path, capsys):
+    from pe_rlhf.cli import main
+
+    config = tmp_path / "eps.yaml"
+    config.write_text("base: [profile=smoke]\nmethods: [pe-rlhf, haco, idm-mobil]\nseeds: [0, 1]\n")
+    assert main(["sweep", str(config), "--dry-run", "--only", "^haco", "--only", "idm", "--out",
+                 str(tmp_path / "out")]) == 0
+    printed = capsys.readouterr().out
+    assert "sweep eps: 4 cells" in printed
+    assert "haco__s1" in printed and "idm-mobil__s0" in printed and "pe-rlhf__" not in printed
+    with pytest.raises(SystemExit):
+        main(["sweep", str(config), "--dry-run", "--only", "amateur"])
+    assert "matches none of the 6 cells" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["sweep", str(config), "--dry-run", "--only", "("])
+    assert "not a regular expression" in capsys.readouterr().err
+
+
 # -- bookkeeping ---------------------------------------------------------------------------------
 def test_finished_cells_are_skipped_and_crashed_ones_resume(tmp_path):
     cells = expand(_spec(methods=["pe-rlhf"], mentors=None, parameters=None, seeds=[0, 1, 2]))

@@ -4,11 +4,13 @@
     pe-rlhf sweep recipes/sweeps/lower_bound.yaml --max-parallel 2 --out runs/sweeps/lb
     pe-rlhf sweep recipes/sweeps/warmup.yaml --address ray://head:10001   # a Ray cluster (shared OUT)
     pe-rlhf sweep recipes/sweeps/warmup.yaml --dry-run                    # the cells, their state, no run
+    pe-rlhf sweep recipes/sweeps/lower_bound.yaml --only adversarial       # only the cells whose name matches
 """
 
 from __future__ import annotations
 
 import argparse
+import re
 import shutil
 from pathlib import Path
 
@@ -36,6 +38,23 @@ def print_plan(spec, cells, out: Path) -> None:
         print(f"  {state:8s} {cell.name}: {what} {' '.join(cell.overrides)}")
 
 
+def select_cells(cells, patterns: list[str] | None, parser: argparse.ArgumentParser):
+    """The cells whose name matches one of the ``--only`` regular expressions (all cells without any)."""
+    if not patterns:
+        return cells
+    compiled = []
+    for pattern in patterns:
+        try:
+            compiled.append(re.compile(pattern))
+        except re.error as e:
+            parser.error(f"--only {pattern!r}: not a regular expression ({e})")
+    chosen = [c for c in cells if any(p.search(c.name) for p in compiled)]
+    if not chosen:
+        parser.error(f"--only {' '.join(patterns)}: matches none of the {len(cells)} cells "
+                     f"(e.g. {', '.join(c.name for c in cells[:3])})")
+    return chosen
+
+
 def run_sweep_command(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
     from pe_rlhf.sweeps import DEFAULT_ROOT, check_cell_configs, expand, run_cells, write_summary
 
@@ -44,7 +63,8 @@ def run_sweep_command(args: argparse.Namespace, parser: argparse.ArgumentParser)
     try:
         spec = load_sweep(args.config)
         out = Path(args.out) if args.out else DEFAULT_ROOT / spec.name
-        cells = expand(spec)
+        all_cells = expand(spec)
+        cells = select_cells(all_cells, args.only, parser)
         check_cell_configs(cells)
         for cell in cells:
             check_folder(out, cell)
@@ -60,7 +80,7 @@ def run_sweep_command(args: argparse.Namespace, parser: argparse.ArgumentParser)
                            num_cpus=spec.num_cpus, progress=not args.no_progress, name=spec.name)
     except RuntimeError as e:  # ray missing
         parser.error(str(e))
-    paths = write_summary(out, cells, spec.metrics, title=spec.name, description=spec.description)
+    paths = write_summary(out, all_cells, spec.metrics, title=spec.name, description=spec.description)
     print(f"{len(report.skipped)} cells were finished already, {len(report.finished)} finished now, "
           f"{len(report.failed)} failed")
     print(paths["summary_md"].read_text())
@@ -79,6 +99,8 @@ def add_sweep_parser(subparsers: argparse._SubParsersAction) -> argparse.Argumen
     p.add_argument("--address", metavar="ADDR", help="Ray cluster address (default: a local Ray on this machine)")
     p.add_argument("--max-parallel", type=int, metavar="N", help="cells running at once (default: as many as the "
                    "CPUs hold at the config's resources.num_cpus)")
+    p.add_argument("--only", action="append", metavar="REGEX", help="run only the cells whose name matches "
+                   "(repeatable); the summary still covers every finished cell")
     p.add_argument("--dry-run", action="store_true", help="list the cells and their state, check configs, run nothing")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(handler=run_sweep_command, subparser=p)
