@@ -71,3 +71,29 @@ def test_resume_continues_without_gap_or_repeat(tmp_path):
     assert final["training"]["frames"] == 300
     # warm-up (100 frames) happened once: after resuming, the takeover bookkeeping counts online frames only
     assert final["training"]["online_frames"] == 200
+
+
+def test_refresh_on_all_data_feeds_online_transitions_to_the_ensemble(tmp_path):
+    """selector.refresh_data=all: the ensemble's buffer holds every step (executed action, env reward);
+    the default keeps only the warm-up's."""
+    import torch
+
+    from pe_rlhf.training.builders import build_replay_buffer
+    from pe_rlhf.training.checkpoint import find_checkpoint, load_checkpoint
+    from pe_rlhf.training.config import load_config
+
+    sizes = {}
+    for data in ("warmup", "all"):
+        out = tmp_path / data
+        _load_recipe().main(["profile=smoke", "eval.video=false", "selector.refresh_every=100",
+                             f"selector.refresh_data={data}", "--out", str(out)])
+        cfg = load_config(out / "config.yaml", apply_profile=False)
+        warmup = build_replay_buffer(cfg)
+        load_checkpoint(find_checkpoint(out / "checkpoints"), modules={}, optimizers={},
+                        replay_buffers={"warmup": warmup}, strict=False, restore_rng_state=False)
+        sizes[data] = len(warmup)
+        stored = warmup[:]
+        # the fitted action is the executed one, with the env's reward beside it
+        assert torch.equal(stored["action"], stored["next", "behavior_action"])
+        assert torch.isfinite(stored["next", "reward"]).all()
+    assert sizes == {"warmup": 100, "all": 300}

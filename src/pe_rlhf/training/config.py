@@ -44,7 +44,8 @@ DEFAULTS: dict[str, Any] = {
     "physics": {"enabled": True, "see_obstacles": False, "stop_for_obstacles": False, "use_idm": True, "use_mobil": True},
     "selector": {"enabled": True, "epsilon_select": 0.5, "variance_threshold": None, "num_members": 5,
                  "hidden": [256, 256], "warmup_fit_steps": 3000, "refresh_every": 0, "refresh_steps": 500,
-                 "fit_loss": "mean", "target_noise": 0.1, "lr": 3.0e-4, "batch_size": 256},
+                 "refresh_data": "warmup",
+                 "fit_loss": "mean", "target_noise": 0.1, "tau": 0.005, "lr": 3.0e-4, "batch_size": 256},
     "collector": {"total_frames": 30000, "frames_per_batch": 100, "warmup_steps": 10000,
                   "warmup_gap": True, "learning_starts": 100, "exploration": "random", "backend": "single", "num_workers": 1,
                   "realtime_hz": 0},
@@ -110,6 +111,7 @@ HUMAN_DEFAULTS: dict[str, Any] = {"collector.realtime_hz": 10.0, "optim.async_up
 
 BACKENDS = ("single", "multisync", "multiasync", "ray")
 FIT_LOSSES = ("mean", "member")
+REFRESH_DATA = ("warmup", "all")
 INTERVENTION_CRITIC_ACTIONS = ("agent", "behavior")
 WANDB_MODES = ("offline", "online", "disabled")
 SPLITS = ("train", "test")
@@ -341,7 +343,8 @@ RULES: dict[str, Rule] = {
     "selector.variance_threshold": _optional(_number(0)), "selector.num_members": _int(1),
     "selector.hidden": _hidden, "selector.warmup_fit_steps": _int(0), "selector.refresh_every": _int(0),
     "selector.refresh_steps": _int(0), "selector.fit_loss": _choice(*FIT_LOSSES),
-    "selector.target_noise": _number(0), "selector.lr": _number(0, lo_open=True),
+    "selector.refresh_data": _choice(*REFRESH_DATA),
+    "selector.target_noise": _number(0), "selector.tau": _number(0, 1, lo_open=True), "selector.lr": _number(0, lo_open=True),
     "selector.batch_size": _int(1),
     "collector.total_frames": _int(1), "collector.frames_per_batch": _int(1),
     "collector.warmup_steps": _int(0), "collector.warmup_gap": _bool, "collector.exploration": _choice("random", "deterministic"), "collector.learning_starts": _int(0),

@@ -225,6 +225,10 @@ class _Run:
         self.replay, self.warmup_buffer = builders.build_replay_buffer(cfg), builders.build_replay_buffer(cfg)
         self.schedule = EnsembleSchedule(int(cfg.collector.warmup_steps), int(cfg.selector.refresh_every),
                                          int(cfg.selector.warmup_fit_steps), int(cfg.selector.refresh_steps))
+        # selector.refresh_data=all: refreshes also fit on the online transitions (the ensemble sees what the
+        # hybrid policy's actions led to in the states the agent visits, crashes under physics' actions included)
+        self._ensemble_sees_online = (self.ensemble is not None and int(cfg.selector.refresh_every) > 0
+                                      and str(cfg.selector.refresh_data) == "all")
         self.counters = Counters()
         modules = {"loss": self.loss, **({"ensemble": self.ensemble} if self.ensemble is not None else {})}
         self.objects = {"modules": modules, "optimizers": self.optimizers,
@@ -314,8 +318,9 @@ class _Run:
         warmup = c.frames < int(cfg.collector.warmup_steps)
         m = batch_metrics(batch)
         c.add(m, warmup)
-        if warmup:
+        if warmup or self._ensemble_sees_online:  # online: the executed (hybrid) action and its env reward
             self.warmup_buffer.extend(ensemble_transitions(batch).reshape(-1))  # (N, T) with multisync: time last
+        if warmup:
             batch = relabel_warmup(batch, keep_agent_action=bool(cfg.collector.warmup_gap))
             m["intervention_cost"] = 0.0  # forced mentor driving is no takeover: nothing is charged
         with self.updater.lock:  # the learner thread samples from it
@@ -357,8 +362,8 @@ class _Run:
             return
         fit_q_ensemble(self.ensemble, self.warmup_buffer, steps=fit_steps, batch_size=int(cfg.selector.batch_size),
                        gamma=float(cfg.loss.gamma), lr=float(cfg.selector.lr),
-                       target_noise=float(cfg.selector.target_noise), loss=str(cfg.selector.fit_loss),
-                       seed=int(cfg.seed))
+                       target_noise=float(cfg.selector.target_noise), tau=float(cfg.selector.tau),
+                       loss=str(cfg.selector.fit_loss), seed=int(cfg.seed))
         self.ensemble.requires_grad_(False)
         if self.collector is not None:
             builders.push_ensemble_weights(self.collector, self.ensemble)
