@@ -5,6 +5,7 @@ Example::
     pe-rlhf evaluate --policy idm-mobil --split test --episodes 50 --json runs/idm.json
     pe-rlhf evaluate --policy random --seeds 2000-2049 --config-override traffic_density=0.8
     pe-rlhf sweep recipes/sweeps/mentor_proficiency.yaml --max-parallel 2
+    pe-rlhf compare --row HACO=runs/haco --eval IDM-MOBIL=runs/idm.json --out runs/table1
 """
 
 from __future__ import annotations
