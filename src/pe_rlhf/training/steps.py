@@ -10,7 +10,8 @@ from pe_rlhf.objectives import PERLHFLoss
 
 
 def ensemble_transitions(batch: TensorDictBase) -> TensorDictBase:
-    """Warm-up transitions as the Q-ensemble is fitted on them: a copy whose ``action`` is the executed
+    """Transitions as the Q-ensemble is fitted on them (warm-up ones, and online ones with
+    ``selector.refresh_data=all``): a copy whose ``action`` is the executed
     (mentor's) ``("next", "behavior_action")`` and whose ``("next", "action")`` is the action executed
     at ``s'`` (:func:`~pe_rlhf.modules.add_next_actions`), so ``Q_k`` estimates the value of the
     *driving* policy. (The root ``action`` of a collected batch is the agent's proposal, which the
