@@ -13,6 +13,8 @@ steps after learning starts, each with its update:
   at frame L to the end of the one at L + steps; no evaluation or checkpoint (the recipe's are periodic
   and would be the same for any learner). Acting runs on 1 thread, updates on ``--threads`` (the recipe's
   own choice, :mod:`pe_rlhf.threads`).
+- ours_bf16: the same with ``optim.precision=bf16`` (:mod:`pe_rlhf.modules.precision`: bf16 autocast in the
+  updates, fp32 weights, optimiser state and network outputs); SB3 runs in fp32, its only mode.
 - SB3: ``SAC("MlpPolicy", make_gym_env(config), train_freq=1, gradient_steps=1, ...).learn(L + steps)``,
   from the return of ``collect_rollouts`` at step L to the end of ``learn``; acting and updates on
   ``--threads`` (SB3 does not change torch's thread count).
@@ -20,9 +22,9 @@ steps after learning starts, each with its update:
 Each time is split into ``sim`` (``DrivingEnv.step``/``reset`` themselves, the same code in both),
 ``collect`` (the rest of acting: policy forward, wrappers, collector / rollout loop, buffer writes in SB3),
 ``update`` (our ``learner.learn``: buffer extend, sampling and updates; SB3's ``train``) and ``other``
-(the rest of the loop: our tracker and logging, SB3's bookkeeping). The two run back to back in each
+(the rest of the loop: our tracker and logging, SB3's bookkeeping). The three run back to back in each
 round, the order alternating (these machines are shared and noisy); the comparison is the median over
-rounds of each one's steps/s, and the median of the per-round ratios ours / SB3. Each ``--threads`` count
+rounds of each one's steps/s, and the median of the per-round ratios ours / SB3 (and ours_bf16 / SB3). Each ``--threads`` count
 gets its own rounds. ``--update-variants R`` then times one update alone (R interleaved rounds): ours,
 ours without ``vmap``, ours under bf16 autocast, SB3 in fp32 and bf16, at ``--batch`` and at batch 16 (the
 fixed cost of an update); ``--cprofile N`` prints the top N functions of one more run of each.
@@ -51,7 +53,7 @@ import torch
 from pe_rlhf.threads import torch_threads
 
 RATIO_TARGET = 1.3
-METHODS = ("ours", "sb3")
+METHODS = ("ours", "ours_bf16", "sb3")  # ours_bf16: the same recipe with optim.precision=bf16
 
 
 # --------------------------------------------------------------------------- timing helpers
@@ -200,7 +202,13 @@ def run_sb3(cfg, seed: int, sim: SimTimer) -> dict:
                   s1["updates"] - s0["updates"])
 
 
-RUNNERS = {"ours": run_ours, "sb3": run_sb3}
+def run_ours_bf16(cfg, seed: int, sim: SimTimer) -> dict:
+    """Our recipe with ``optim.precision=bf16`` (bf16 autocast in the updates; SB3 stays fp32, its default)."""
+    cfg.optim.precision = "bf16"
+    return run_ours(cfg, seed, sim)
+
+
+RUNNERS = {"ours": run_ours, "ours_bf16": run_ours_bf16, "sb3": run_sb3}
 
 
 # --------------------------------------------------------------------------- reporting
@@ -242,15 +250,16 @@ def summarise(rounds: list[dict]) -> dict:
                   "steps_per_s_max": max(sps),
                   "split_ms_per_step_median": {k: statistics.median(run["split_ms_per_step"][k] for run in runs)
                                                for k in runs[0]["split_ms_per_step"]}}
-    ratios = [r["ours"]["steps_per_s"] / r["sb3"]["steps_per_s"] for r in rounds]
-    out["ratio"] = {"median_of_rounds": statistics.median(ratios), "min": min(ratios), "max": max(ratios),
-                    "of_medians": out["ours"]["steps_per_s_median"] / out["sb3"]["steps_per_s_median"],
-                    "per_round": ratios, "target": RATIO_TARGET}
+    for name, m in (("ratio", "ours"), ("ratio_bf16", "ours_bf16")):
+        ratios = [r[m]["steps_per_s"] / r["sb3"]["steps_per_s"] for r in rounds]
+        out[name] = {"median_of_rounds": statistics.median(ratios), "min": min(ratios), "max": max(ratios),
+                     "of_medians": out[m]["steps_per_s_median"] / out["sb3"]["steps_per_s_median"],
+                     "per_round": ratios, "target": RATIO_TARGET}
     return out
 
 
 def markdown(summary: dict, threads: int) -> str:
-    names = {"ours": "ours (recipes/sac_rs)", "sb3": "SB3 SAC"}
+    names = {"ours": "ours (recipes/sac_rs)", "ours_bf16": "ours, optim.precision=bf16", "sb3": "SB3 SAC (fp32)"}
     header = f"| {threads} torch thread(s) | env-steps/s (median) | min-max | sim ms | collect ms | update ms | other ms |"
     lines = [header, "|---|---|---|---|---|---|---|"]
     for m in METHODS:
@@ -258,9 +267,11 @@ def markdown(summary: dict, threads: int) -> str:
         lines.append(f"| {names[m]} | {s['steps_per_s_median']:.1f} | {s['steps_per_s_min']:.1f}-"
                      f"{s['steps_per_s_max']:.1f} | {ms['sim']:.1f} | {ms['collect']:.1f} | {ms['update']:.1f} "
                      f"| {ms['other']:.1f} |")
-    r = summary["ratio"]
-    lines.append(f"\nratio ours / SB3: x{r['median_of_rounds']:.2f} (median of rounds; range {r['min']:.2f}-"
-                 f"{r['max']:.2f}; of medians x{r['of_medians']:.2f}); target >= x{RATIO_TARGET}")
+    lines.append("")
+    for key, label in (("ratio", "ours / SB3"), ("ratio_bf16", "ours bf16 / SB3 fp32")):
+        r = summary[key]
+        lines.append(f"{label}: x{r['median_of_rounds']:.2f} (median of rounds; range {r['min']:.2f}-"
+                     f"{r['max']:.2f}; of medians x{r['of_medians']:.2f}); target >= x{RATIO_TARGET}")
     return "\n".join(lines)
 
 
@@ -304,9 +315,9 @@ def update_candidates(cfg) -> dict:
                               row["action"][None].numpy(), row["next", "reward"].numpy(), row["next", "done"].numpy(),
                               [{}])
 
-    def ours_update(learner):
+    def ours_update(learner, precision="fp32"):
         return lambda: update(learner.loss, learner.optimizers, learner.soft_update, learner.replay.sample(),
-                              cfg.optim.max_grad_norm)
+                              cfg.optim.max_grad_norm, precision)
 
     def bf16(step):
         def run():
@@ -315,7 +326,7 @@ def update_candidates(cfg) -> dict:
         return run
 
     batch = int(cfg.replay_buffer.batch_size)
-    return {"ours": ours_update(ours), "ours_no_vmap": ours_update(loop), "ours_bf16": bf16(ours_update(ours)),
+    return {"ours": ours_update(ours), "ours_no_vmap": ours_update(loop), "ours_bf16": ours_update(ours, "bf16"),
             "sb3": lambda: sb3.train(1, batch), "sb3_bf16": bf16(lambda: sb3.train(1, batch))}
 
 
@@ -370,7 +381,7 @@ def compare(args, threads: int, sim: SimTimer) -> dict:
             for m in order:
                 result[m] = RUNNERS[m](recipe_config(args), args.seed + r, sim)
                 result[m]["load_after"] = load()
-                print(f"{threads} thread(s), round {r}: {m:4s} {result[m]['steps_per_s']:6.1f} env-steps/s  "
+                print(f"{threads} thread(s), round {r}: {m:9s} {result[m]['steps_per_s']:6.1f} env-steps/s  "
                       + " ".join(f"{k} {v:.1f}" for k, v in result[m]["split_ms_per_step"].items())
                       + f" ms/step (load {result[m]['load_after']['loadavg_1min']:.2f}, "
                       f"{result[m]['load_after']['other_jobs']} other jobs)", flush=True)

@@ -135,9 +135,9 @@ class SACLearner:
             window = tracker.window_cost()
             if self.lagrangian and window is not None:
                 self.loss.lagrange_multiplier.update(window)  # once per batch, before its updates
-            max_norm = self.cfg.optim.max_grad_norm
-            log.update(summarise([update(self.loss, self.optimizers, self.soft_update, self.replay.sample(), max_norm)
-                                  for _ in range(int(self.cfg.optim.updates_per_batch))]))
+            max_norm, precision = self.cfg.optim.max_grad_norm, str(self.cfg.optim.precision)
+            log.update(summarise([update(self.loss, self.optimizers, self.soft_update, self.replay.sample(), max_norm,
+                                         precision) for _ in range(int(self.cfg.optim.updates_per_batch))]))
         if self.lagrangian:
             log["train/lambda"] = float(self.loss.lagrange_multiplier.value.detach())
             log.pop("train/lagrange_multiplier", None)  # the value the updates saw: train/lambda says it

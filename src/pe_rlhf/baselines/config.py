@@ -40,6 +40,7 @@ from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from pe_rlhf.baselines import imitation_config
+from pe_rlhf.modules.precision import PRECISIONS
 from pe_rlhf.training.config import (
     RECIPES_ENV_VAR,
     SPLITS,
@@ -103,7 +104,7 @@ _FAMILY: dict[str, dict[str, Any]] = {
         "collector": {"total_frames": 1_000_000, "frames_per_batch": 100, "learning_starts": 10_000,
                       "init_random_frames": 0},
         "replay_buffer": {"size": 1_000_000, "batch_size": 256},
-        "optim": {"lr": 1.0e-4, "updates_per_batch": 100, "max_grad_norm": None},
+        "optim": {"lr": 1.0e-4, "updates_per_batch": 100, "max_grad_norm": None, "precision": "fp32"},
         "loss": {"gamma": 0.99, "tau": 0.005, "num_qvalue_nets": 2, "target_entropy": "auto", "alpha_init": 1.0,
                  "hidden": [256, 256]},
     },
@@ -248,6 +249,7 @@ RULES = {
     "replay_buffer.size": _int(1), "replay_buffer.batch_size": _int(1),
     "optim.lr": _number(0, lo_open=True), "optim.updates_per_batch": _int(1), "optim.epochs": _int(1),
     "optim.minibatch_size": _int(1), "optim.max_grad_norm": _optional(_number(0, lo_open=True)),
+    "optim.precision": _choice(*PRECISIONS),
     "loss.gamma": _number(0, 1), "loss.tau": _number(0, 1, lo_open=True), "loss.num_qvalue_nets": _int(1),
     "loss.target_entropy": _target_entropy, "loss.alpha_init": _number(0, lo_open=True), "loss.hidden": _hidden,
     "loss.num_cost_qvalue_nets": _int(1), "loss.cost_aggregate": _choice("max", "mean", "min"),

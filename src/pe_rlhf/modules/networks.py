@@ -8,14 +8,17 @@ from torch import nn
 from torchrl.data import Bounded
 from torchrl.modules import MLP, ProbabilisticActor, TanhNormal
 
+from pe_rlhf.modules.precision import fp32_output_layer
+
 
 class QValueNet(nn.Module):
-    """``Q(s, a)``: an MLP on ``cat(observation, action)`` returning ``(..., 1)``."""
+    """``Q(s, a)``: an MLP on ``cat(observation, action)`` returning ``(..., 1)``, always fp32 (its output
+    layer is exempt from autocast: :mod:`pe_rlhf.modules.precision`)."""
 
     def __init__(self, obs_dim: int, action_dim: int = 2, hidden: tuple[int, ...] = (256, 256)):
         super().__init__()
-        self.mlp = MLP(in_features=obs_dim + action_dim, out_features=1, num_cells=list(hidden),
-                       activation_class=nn.ReLU)
+        self.mlp = fp32_output_layer(MLP(in_features=obs_dim + action_dim, out_features=1, num_cells=list(hidden),
+                                         activation_class=nn.ReLU))
 
     def forward(self, observation: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         return self.mlp(torch.cat([observation, action], -1))
@@ -30,9 +33,11 @@ def make_qvalue(obs_dim: int, action_dim: int = 2, hidden: tuple[int, ...] = (25
 
 def make_actor(obs_dim: int, action_dim: int = 2, hidden: tuple[int, ...] = (256, 256)) -> ProbabilisticActor:
     """SAC-style actor: reads ``observation``, writes ``loc``, ``scale`` and ``action`` in [-1, 1]
-    (TanhNormal); deterministic mode returns the distribution's mode."""
+    (TanhNormal); deterministic mode returns the distribution's mode. ``loc``/``scale`` are fp32 even
+    under autocast (:mod:`pe_rlhf.modules.precision`)."""
     net = nn.Sequential(
-        MLP(in_features=obs_dim, out_features=2 * action_dim, num_cells=list(hidden), activation_class=nn.ReLU),
+        fp32_output_layer(MLP(in_features=obs_dim, out_features=2 * action_dim, num_cells=list(hidden),
+                              activation_class=nn.ReLU)),
         NormalParamExtractor(scale_mapping="biased_softplus_1.0", scale_lb=1e-4),
     )
     module = TensorDictModule(net, in_keys=["observation"], out_keys=["loc", "scale"])

@@ -53,8 +53,9 @@ class _Updater:
     """What both learners share: the UTD budget, counters, the latest losses."""
 
     def __init__(self, loss, optimizers: dict, soft_update, replay, *, updates_per_step,
-                 max_grad_norm: float | None, threads: int):
+                 max_grad_norm: float | None, threads: int, precision: str = "fp32"):
         self.loss, self.optimizers, self.soft_update, self.replay = loss, optimizers, soft_update, replay
+        self.precision = str(precision)  # "fp32" | "bf16": update()'s autocast (pe_rlhf.modules.precision)
         self.updates_per_step = _ratio(updates_per_step)
         self.max_grad_norm = None if max_grad_norm is None else float(max_grad_norm)
         self.threads = max(1, int(threads))
@@ -82,7 +83,7 @@ class _Updater:
         t = time.perf_counter()
         with self.lock:
             sample = self.replay.sample()
-        losses = update(self.loss, self.optimizers, self.soft_update, sample, self.max_grad_norm)
+        losses = update(self.loss, self.optimizers, self.soft_update, sample, self.max_grad_norm, self.precision)
         self.update_seconds += time.perf_counter() - t
         return losses
 
@@ -102,9 +103,9 @@ class SyncUpdater(_Updater):
     """
 
     def __init__(self, loss, optimizers: dict, soft_update, replay, *, updates_per_step, max_grad_norm,
-                 actor, threads: int | None = None):
+                 actor, threads: int | None = None, precision: str = "fp32"):
         super().__init__(loss, optimizers, soft_update, replay, updates_per_step=updates_per_step,
-                         max_grad_norm=max_grad_norm, threads=threads or torch.get_num_threads())
+                         max_grad_norm=max_grad_norm, threads=threads or torch.get_num_threads(), precision=precision)
         self.policy = actor
 
     def start(self) -> None:
@@ -182,9 +183,10 @@ class BackgroundUpdater(_Updater):
     """
 
     def __init__(self, loss, optimizers: dict, soft_update, replay, *, updates_per_step, max_grad_norm,
-                 actor, threads: int | None = None, publish_every: int = 1, switch_interval: float | None = 0.001):
+                 actor, threads: int | None = None, publish_every: int = 1, switch_interval: float | None = 0.001,
+                 precision: str = "fp32"):
         super().__init__(loss, optimizers, soft_update, replay, updates_per_step=updates_per_step,
-                         max_grad_norm=max_grad_norm,
+                         max_grad_norm=max_grad_norm, precision=precision,
                          threads=threads if threads is not None else max(1, torch.get_num_threads() - 1))
         if int(publish_every) < 1:
             raise ValueError(f"publish_every must be >= 1 updates, got {publish_every!r}")

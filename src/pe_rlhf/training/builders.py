@@ -291,7 +291,7 @@ def build_updater(cfg, loss: PERLHFLoss, optimizers: dict, soft_update: SoftUpda
     from pe_rlhf.training.background_updates import BackgroundUpdater, SyncUpdater
 
     kwargs = {"updates_per_step": Fraction(int(cfg.optim.updates_per_batch), int(cfg.collector.frames_per_batch)),
-              "max_grad_norm": cfg.optim.max_grad_norm, "actor": actor}
+              "max_grad_norm": cfg.optim.max_grad_norm, "precision": str(cfg.optim.precision), "actor": actor}
     if cfg.optim.async_updates:
         return BackgroundUpdater(loss, optimizers, soft_update, replay, threads=max(1, update_threads - 1), **kwargs)
     return SyncUpdater(loss, optimizers, soft_update, replay, threads=update_threads, **kwargs)

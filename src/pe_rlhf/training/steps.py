@@ -6,6 +6,7 @@ import torch
 from tensordict import TensorDictBase
 
 from pe_rlhf.modules import add_next_actions
+from pe_rlhf.modules.precision import update_precision
 from pe_rlhf.objectives import PERLHFLoss
 
 
@@ -50,14 +51,18 @@ def relabel_warmup(batch: TensorDictBase, keep_agent_action: bool = True) -> Ten
 
 
 def update(loss: PERLHFLoss, optimizers: dict, soft_update, sample: TensorDictBase,
-           max_grad_norm: float | None) -> dict[str, float]:
+           max_grad_norm: float | None, precision: str = "fp32") -> dict[str, float]:
     """One gradient step on every loss term, then the Polyak target update; returns detached scalars.
+
+    ``precision="bf16"`` runs the loss forward under bf16 autocast (the backward follows it; weights,
+    gradients and optimiser state stay fp32): :mod:`pe_rlhf.modules.precision`.
 
     Stops with a ``FloatingPointError`` before any parameter changes if a loss term (named) or an
     optimizer's gradient norm (optimizer named) is not finite, and after the step if a parameter
     (named) became non-finite anyway. The trainer saves a checkpoint before it passes the error on.
     """
-    out = loss(sample)
+    with update_precision(precision, sample.device or "cpu"):
+        out = loss(sample)
     terms = {k: v for k, v in out.items() if k.startswith("loss_")}
     for name, value in terms.items():
         if not torch.isfinite(value):
