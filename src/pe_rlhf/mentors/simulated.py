@@ -97,9 +97,13 @@ class SkillProfile:
             bad("min_span", "must be >= 1 step")
 
 
+# The amateur tires over a whole run: fatigue x2 after 10K controlled steps (about the end of a 10K-step
+# warm-up, where the rule fires on most of the agent's proposals), x3 (the cap) after 20K, so its mistakes
+# keep growing through the online phase (issue 7's value-takeover analysis). With 1.0 it hit the cap
+# within the first 2K warm-up steps and stayed there.
 PRESETS: dict[str, SkillProfile] = {
     "professional": SkillProfile(action_noise=0.01),
-    "amateur": SkillProfile(action_noise=0.08, reaction_delay=3, error_rate=0.06, fatigue_rate=1.0,
+    "amateur": SkillProfile(action_noise=0.08, reaction_delay=3, error_rate=0.06, fatigue_rate=0.1,
                             speed_factor=0.95),
     "adversarial": SkillProfile(action_noise=0.1, reaction_delay=3, error_rate=0.08, fatigue_rate=1.0,
                                 danger_seeking=0.01, speed_factor=1.1),
