@@ -26,7 +26,7 @@ Each time is split into ``sim`` (``DrivingEnv.step``/``reset`` themselves, the s
 round, the order alternating (these machines are shared and noisy); the comparison is the median over
 rounds of each one's steps/s, and the median of the per-round ratios ours / SB3 (and ours_bf16 / SB3). Each ``--threads`` count
 gets its own rounds. ``--update-variants R`` then times one update alone (R interleaved rounds): ours,
-ours without ``vmap``, ours under bf16 autocast, SB3 in fp32 and bf16, at ``--batch`` and at batch 16 (the
+ours with TorchRL's ``vmap`` over the critics, ours in bf16, SB3 in fp32 and bf16, at ``--batch`` and at batch 16 (the
 fixed cost of an update); ``--cprofile N`` prints the top N functions of one more run of each.
 
     python benchmarks/sac_vs_sb3.py [--steps 2000] [--rounds 3] [--learning-starts 1000] [--batch 1024]
@@ -291,9 +291,9 @@ def _random_transitions(n: int, dim: int):
 
 
 def update_candidates(cfg) -> dict:
-    """``{name: one update}`` on the same random transitions: ours as the recipe runs it, ours with TorchRL's
-    ``deactivate_vmap`` (a loop over the critics instead of ``vmap``), ours under bf16 autocast, SB3's
-    ``train(1)`` in fp32 and under bf16 autocast."""
+    """``{name: one update}`` on the same random transitions: ours as the recipe runs it (TorchRL's
+    ``deactivate_vmap``: the critics in a loop), ours with ``vmap`` (TorchRL's default), ours in bf16
+    (``optim.precision=bf16``), SB3's ``train(1)`` in fp32 and under bf16 autocast."""
     from stable_baselines3.common.logger import configure
 
     from pe_rlhf.baselines.algorithms import SACLearner
@@ -303,11 +303,11 @@ def update_candidates(cfg) -> dict:
     dim = obs_dim(cfg)
     data = _random_transitions(min(3000, int(cfg.replay_buffer.size)), dim)
     torch.manual_seed(0)
-    ours, loop = SACLearner(cfg, dim, lagrangian=False), SACLearner(cfg, dim, lagrangian=False)
+    ours, vmapped = SACLearner(cfg, dim, lagrangian=False), SACLearner(cfg, dim, lagrangian=False)
     ours.replay.extend(data)
-    loop.replay = ours.replay
-    loop.loss.deactivate_vmap = True  # as SACLoss(..., deactivate_vmap=True) would build it
-    loop.loss._make_vmap()
+    vmapped.replay = ours.replay
+    vmapped.loss.deactivate_vmap = False  # as SACLoss(..., deactivate_vmap=False), TorchRL's default, builds it
+    vmapped.loss._make_vmap()
     sb3 = make_sb3(cfg, seed=0)
     sb3.set_logger(configure(None, [""]))
     for row in data:
@@ -326,7 +326,7 @@ def update_candidates(cfg) -> dict:
         return run
 
     batch = int(cfg.replay_buffer.batch_size)
-    return {"ours": ours_update(ours), "ours_no_vmap": ours_update(loop), "ours_bf16": ours_update(ours, "bf16"),
+    return {"ours": ours_update(ours), "ours_vmap": ours_update(vmapped), "ours_bf16": ours_update(ours, "bf16"),
             "sb3": lambda: sb3.train(1, batch), "sb3_bf16": bf16(lambda: sb3.train(1, batch))}
 
 
@@ -408,7 +408,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--seed", type=int, default=0, help="round r uses seed + r (the same for both)")
     parser.add_argument("--json", default=None, help="write config, rounds and summary here")
     parser.add_argument("--update-variants", type=int, default=0, metavar="ROUNDS",
-                        help="then time one update alone: ours, ours without vmap, ours in bf16, SB3 (fp32, bf16)")
+                        help="then time one update alone: ours, ours with vmap, ours in bf16, SB3 (fp32, bf16)")
     parser.add_argument("--cprofile", type=int, default=0, metavar="N",
                         help="then profile one more run of each and print the top N functions")
     args = parser.parse_args(argv)

@@ -99,6 +99,7 @@ class SACLearner:
         self.cfg, self.lagrangian = cfg, lagrangian
         self.actor = make_actor(obs_dim, hidden=tuple(lc.hidden))
         kwargs = {"num_qvalue_nets": int(lc.num_qvalue_nets), "loss_function": "l2", "alpha_init": float(lc.alpha_init),
+                  "deactivate_vmap": bool(lc.deactivate_vmap),
                   "action_spec": Bounded(-1.0, 1.0, (2,)),
                   "target_entropy": lc.target_entropy if lc.target_entropy == "auto" else float(lc.target_entropy)}
         qvalue = make_qvalue(obs_dim, hidden=tuple(lc.hidden))

@@ -106,7 +106,7 @@ _FAMILY: dict[str, dict[str, Any]] = {
         "replay_buffer": {"size": 1_000_000, "batch_size": 256},
         "optim": {"lr": 1.0e-4, "updates_per_batch": 100, "max_grad_norm": None, "precision": "fp32"},
         "loss": {"gamma": 0.99, "tau": 0.005, "num_qvalue_nets": 2, "target_entropy": "auto", "alpha_init": 1.0,
-                 "hidden": [256, 256]},
+                 "hidden": [256, 256], "deactivate_vmap": True},
     },
     "ppo": {
         "collector": {"total_frames": 1_000_000, "frames_per_batch": 4000},
@@ -252,6 +252,7 @@ RULES = {
     "optim.precision": _choice(*PRECISIONS),
     "loss.gamma": _number(0, 1), "loss.tau": _number(0, 1, lo_open=True), "loss.num_qvalue_nets": _int(1),
     "loss.target_entropy": _target_entropy, "loss.alpha_init": _number(0, lo_open=True), "loss.hidden": _hidden,
+    "loss.deactivate_vmap": _bool,
     "loss.num_cost_qvalue_nets": _int(1), "loss.cost_aggregate": _choice("max", "mean", "min"),
     "loss.gae_lambda": _number(0, 1), "loss.clip_epsilon": _number(0, lo_open=True), "loss.kl_coef": _number(0),
     "loss.kl_target": _optional(_number(0, lo_open=True)), "loss.entropy_coef": _number(0),
