@@ -233,6 +233,26 @@ def test_summary_aggregates_seeds_exactly(tmp_path):
     assert all(paths[k].stat().st_size > 0 for k in ("summary", "value_takeover_rate", "takeover_rate"))
 
 
+def test_windowed_value_takeover_rate_counts_only_online_batches_in_the_window():
+    from pe_rlhf.sweeps.plots import windowed_value_takeover_rate
+
+    # warm-up of 200 steps (2 batches), then batches of 100 steps: takeover steps 50, 20, 0, 40;
+    # mentor chosen 40, 10, 0, 10 (the cumulative count below)
+    rows = [{"env_steps": 100.0, "train/takeover_rate": 1.0, "train/value_takeover_count": 0.0},
+            {"env_steps": 200.0, "train/takeover_rate": 1.0, "train/value_takeover_count": 0.0},
+            {"env_steps": 300.0, "train/takeover_rate": 0.5, "train/value_takeover_count": 40.0},
+            {"env_steps": 400.0, "train/takeover_rate": 0.2, "train/value_takeover_count": 50.0},
+            {"env_steps": 500.0, "train/takeover_rate": 0.0, "train/value_takeover_count": 50.0},
+            {"env_steps": 600.0, "train/takeover_rate": 0.4, "train/value_takeover_count": 60.0}]
+    assert windowed_value_takeover_rate(rows, warmup_steps=200, window=2) == {
+        300.0: pytest.approx(40 / 50), 400.0: pytest.approx(50 / 70), 500.0: pytest.approx(10 / 20),
+        600.0: pytest.approx(10 / 40)}
+    assert windowed_value_takeover_rate(rows, warmup_steps=200, window=10)[600.0] == pytest.approx(60 / 110)
+    # no takeover step in the window: left out
+    assert 500.0 not in windowed_value_takeover_rate(rows, warmup_steps=200, window=1)
+    assert windowed_value_takeover_rate(rows[:2], warmup_steps=200) == {}
+
+
 # -- a real sweep on local Ray ---------------------------------------------------------------------
 def test_two_cell_sweep_on_local_ray(tmp_path):
     ray = pytest.importorskip("ray")

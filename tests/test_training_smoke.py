@@ -73,6 +73,18 @@ def test_resume_continues_without_gap_or_repeat(tmp_path):
     assert final["training"]["online_frames"] == 200
 
 
+def test_amateur_fatigue_is_logged_and_grows_with_the_steps_it_controls(tmp_path):
+    """``train/mentor_fatigue`` = ``min(1 + fatigue_rate * controlled_steps / 1000, cap)``: it never falls,
+    and the steps the amateur held control in the run (at least every online takeover step) raised it."""
+    _load_recipe().main(["profile=smoke", "eval.video=false", "mentor.name=amateur",
+                         "mentor.kwargs.fatigue_rate=2.0", "--out", str(tmp_path)])
+    rows = list(csv.DictReader(open(tmp_path / "metrics.csv")))
+    fatigue = [float(r["train/mentor_fatigue"]) for r in rows]
+    assert fatigue == sorted(fatigue) and 1.0 < fatigue[-1] <= 3.0
+    online_takeover_steps = float(rows[-1]["train/takeover_data_usage"]) * (300 - 100)
+    assert fatigue[-1] >= 1.0 + 2.0 * online_takeover_steps / 1000 - 1e-6
+
+
 def test_refresh_on_all_data_feeds_online_transitions_to_the_ensemble(tmp_path):
     """selector.refresh_data=all: the ensemble's buffer holds every step (executed action, env reward);
     the default keeps only the warm-up's."""

@@ -7,6 +7,9 @@
 - ``value_takeover_rate.png`` / ``takeover_rate.png``: the logged training curves (``metrics.csv``: the
   cumulative value-takeover rate, the per-batch takeover rate) against env steps, one panel per mentor, one
   line per method x parameter, mean over the seeds.
+- ``value_takeover_window.png``: the value-takeover rate over the last 10 online batches
+  (:func:`windowed_value_takeover_rate`), where a change over training shows (the cumulative rate hides it);
+  ``mentor_fatigue.png``: the simulated mentor's fatigue multiplier, when the runs logged it.
 """
 
 from __future__ import annotations
@@ -22,7 +25,36 @@ from pe_rlhf.sweeps.cells import NONE, Cell, cell_dir
 from pe_rlhf.sweeps.summary import METRICS
 
 CURVES = {"value_takeover_rate": ("train/value_takeover_rate", "value-takeover rate (cumulative)"),
-          "takeover_rate": ("train/takeover_rate", "takeover rate (per batch)")}
+          "takeover_rate": ("train/takeover_rate", "takeover rate (per batch)"),
+          "value_takeover_window": ("windowed_value_takeover_rate", "value-takeover rate (last 10 batches)"),
+          "mentor_fatigue": ("train/mentor_fatigue", "mentor fatigue (x noise and error rate)")}
+WINDOW = 10  # batches in the windowed value-takeover rate
+
+
+def windowed_value_takeover_rate(rows: Sequence[dict[str, float]], warmup_steps: float,
+                                 window: int = WINDOW) -> dict[float, float]:
+    """``{env_steps: mentor-chosen steps / takeover steps}`` over the last ``window`` online batches.
+
+    From a run's ``metrics.csv`` rows (one per batch): a batch's takeover steps are its
+    ``train/takeover_rate`` times its env steps, its mentor-chosen steps the change of the cumulative
+    ``train/value_takeover_count``. Batches that began before ``warmup_steps`` are left out (the selector
+    does not run in the warm-up); a window without takeover steps is left out too.
+    """
+    batches, previous_steps, previous_count = [], 0.0, 0.0
+    for row in rows:
+        if not {"env_steps", "train/takeover_rate", "train/value_takeover_count"} <= row.keys():
+            continue
+        steps, count = row["env_steps"], row["train/value_takeover_count"]
+        if previous_steps >= warmup_steps:
+            batches.append((steps, row["train/takeover_rate"] * (steps - previous_steps), count - previous_count))
+        previous_steps, previous_count = steps, count
+    out = {}
+    for i in range(len(batches)):
+        recent = batches[max(0, i - window + 1): i + 1]
+        takeover = sum(b[1] for b in recent)
+        if takeover > 0:
+            out[batches[i][0]] = sum(b[2] for b in recent) / takeover
+    return out
 
 
 def _pyplot():
@@ -111,19 +143,28 @@ def plot_summary(path: Path, cells: Sequence[Cell], table: list[dict], metrics: 
     return path
 
 
-def _mean_curve(paths: list[Path], column: str) -> tuple[np.ndarray, np.ndarray] | None:
-    """Mean of ``column`` over the runs at the env steps all of them logged."""
+def _run_curve(path: Path, column: str) -> dict[float, float]:
+    """``{env_steps: value}`` of one run: a logged column, or ``windowed_value_takeover_rate``."""
     from pe_rlhf.training.metrics_logger import read_metrics_csv
 
-    runs = []
-    for path in paths:
-        _, rows = read_metrics_csv(path)
-        curve = {r["env_steps"]: r[column] for r in rows if "env_steps" in r and column in r}
-        if curve:
-            runs.append(curve)
+    _, rows = read_metrics_csv(path)
+    if column == "windowed_value_takeover_rate":
+        from omegaconf import OmegaConf
+
+        config = path.parent / "config.yaml"
+        warmup = float(OmegaConf.load(config).collector.warmup_steps) if config.is_file() else 0.0
+        return windowed_value_takeover_rate(rows, warmup)
+    return {r["env_steps"]: r[column] for r in rows if "env_steps" in r and column in r}
+
+
+def _mean_curve(paths: list[Path], column: str) -> tuple[np.ndarray, np.ndarray] | None:
+    """Mean of ``column`` over the runs at the env steps all of them logged."""
+    runs = [curve for path in paths if (curve := _run_curve(path, column))]
     if not runs:
         return None
     steps = sorted(set.intersection(*(set(r) for r in runs)))
+    if not steps:
+        return None
     return np.array(steps), np.array([np.mean([r[s] for r in runs]) for s in steps])
 
 

@@ -339,6 +339,9 @@ class _Run:
         metrics.update(pacing_log(self.pacing, int(m["steps"])))
         disconnects = int(getattr(self.mentor, "disconnects", 0) or 0)  # a person's window closed, pad unplugged
         metrics["train/mentor_disconnects"] = float(disconnects)
+        fatigue = getattr(self.mentor, "fatigue", None)  # a simulated mentor's noise/error multiplier
+        if isinstance(fatigue, (int, float)):
+            metrics["train/mentor_fatigue"] = float(fatigue)
         if c.frames >= self.next_eval:
             self.next_eval = _next_multiple(c.frames, int(cfg.eval.every_frames))
             with self.updater.paused():
