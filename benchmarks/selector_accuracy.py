@@ -1,0 +1,154 @@
+"""How often does a run's fitted Q-ensemble pick the safer of the mentor's and the physics' actions?
+
+    python benchmarks/selector_accuracy.py RUN_DIR [RUN_DIR ...] [--scenes 0-19] [--hold 10] [--horizon 40]
+        [--epsilons 0 0.5 1.5] [--max-states 300] [--json out.json]
+
+For each run folder (PE-RLHF recipe; its ``config.yaml`` and the Q-ensemble in its newest checkpoint):
+obstacle-blind IDM-MOBIL drives the train scenes as the agent, under the run's own mentor (its
+``mentor.name`` / ``mentor.seed``), physics policy (its ``physics.*`` flags) and selector (``epsilon_select``),
+so the states are those a PE-RLHF takeover meets. At every takeover step both candidates are tried on copies of the simulator (and
+of the mentor or physics policy): the candidate's action, then its own driver for the rest of ``--hold``
+steps (a takeover lasts at least 10), then IDM-MOBIL that sees obstacles (0.98 success on the test scenes)
+for the rest of ``--horizon`` steps. A candidate *fails* when its copy crashes or leaves the road
+within the horizon. On the *decisive* states (exactly one candidate fails) the selector is right when it
+picks the other one; reported per ``--epsilons`` value, with "always the mentor" and "always physics" as
+references, plus the advantage ``mean_k Q_k(s, a_mentor) - Q_k(s, a_phy)`` on the decisive states split by
+which candidate was the safe one (a useful ensemble puts them apart).
+"""
+from __future__ import annotations
+
+import argparse
+import copy
+import json
+import statistics
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from pe_rlhf.envs import make_gym_env
+from pe_rlhf.physics import IDMMobilPolicy, PhysicsConfig
+from pe_rlhf.training.builders import build_mentor, build_physics, build_q_ensemble
+from pe_rlhf.training.checkpoint import find_checkpoint, load_checkpoint
+from pe_rlhf.training.config import driving_config, load_config
+
+
+def parse_scenes(text: str) -> list[int]:
+    lo, _, hi = text.partition("-")
+    return list(range(int(lo), int(hi or lo) + 1))
+
+
+def load_run(run: Path):
+    cfg = load_config(run / "config.yaml", apply_profile=False)
+    ensemble = build_q_ensemble(cfg)
+    if ensemble is None:
+        raise SystemExit(f"{run}: selector.enabled is false (a HACO run has no ensemble)")
+    load_checkpoint(find_checkpoint(run / "checkpoints"), modules={"ensemble": ensemble}, optimizers={},
+                    replay_buffers={}, strict=False, restore_rng_state=False)
+    return cfg, ensemble.eval()
+
+
+def fails(env, action, policy, hold: int, horizon: int, oracle: IDMMobilPolicy) -> bool:
+    """On a copy of ``env``: ``action``, then ``policy`` (a copy of the candidate's driver) until step
+    ``hold``, then the oracle until ``horizon``: did the car crash or leave the road?"""
+    sim, policy = copy.deepcopy(env), copy.deepcopy(policy)
+    oracle.reset()
+    for t in range(horizon):
+        a = action if t == 0 else np.asarray(policy(sim) if t < hold else oracle(sim), np.float32)
+        _, _, terminated, truncated, info = sim.step(a)
+        if terminated or truncated:
+            return bool(info.get("crash_vehicle") or info.get("crash_object") or info.get("out_of_road"))
+    return False
+
+
+def measure(run: Path, args) -> dict:
+    cfg, ensemble = load_run(run)
+    env = make_gym_env(driving_config(cfg))
+    mentor, driver, physics = build_mentor(cfg), IDMMobilPolicy(PhysicsConfig()), build_physics(cfg)
+    oracle = IDMMobilPolicy(PhysicsConfig(see_obstacles=True))
+    eps_run = float(cfg.selector.epsilon_select)
+    states = []  # (advantage, mentor_fails, physics_fails)
+    differences = []  # a_mentor - a_phy at every takeover state
+    bar = tqdm(total=args.max_states, desc=run.name, leave=False)
+    for seed in args.scenes:
+        obs, _ = env.reset(options={"scene_seed": seed})
+        mentor.reset(env)
+        driver.reset()
+        physics.reset()
+        done = False
+        while not done and len(states) < args.max_states:
+            a_agent = np.asarray(driver(env), np.float32)
+            decision = mentor.decide(env, a_agent)
+            takeover, a_mentor = decision.takeover, decision.action
+            executed = a_agent
+            if takeover:
+                a_mentor = np.asarray(a_mentor, np.float32)
+                a_phy = np.asarray(physics(env), np.float32)  # the run's physics policy (its physics.* flags)
+                with torch.no_grad():
+                    q = ensemble.values(torch.as_tensor(np.stack([obs, obs])), torch.as_tensor(np.stack([a_mentor, a_phy])))
+                advantage = float((q[:, 0] - q[:, 1]).mean())
+                differences.append(a_mentor - a_phy)
+                states.append((advantage, fails(env, a_mentor, mentor.act, args.hold, args.horizon, oracle),
+                               fails(env, a_phy, physics, args.hold, args.horizon, oracle)))
+                bar.update(1)
+                executed = a_mentor if advantage >= eps_run else a_phy
+            obs, _, terminated, truncated, _ = env.step(executed)
+            done = terminated or truncated
+        if len(states) >= args.max_states:
+            break
+    bar.close()
+    decisive = [s for s in states if s[1] != s[2]]
+    mentor_safe = [s[0] for s in decisive if not s[1]]
+    physics_safe = [s[0] for s in decisive if not s[2]]
+    out = {"run": str(run), "mentor": str(cfg.mentor.name), "selector_tau": float(cfg.selector.get("tau", 0.005)),
+           "epsilon_select": eps_run, "takeover_states": len(states), "decisive_states": len(decisive),
+           "mentor_fails": sum(s[1] for s in states), "physics_fails": sum(s[2] for s in states),
+           "both_fail": sum(s[1] and s[2] for s in states),
+           "always_mentor_right": len(mentor_safe) / max(len(decisive), 1),
+           "advantage_median_all": statistics.median(s[0] for s in states) if states else None,
+           "mentor_chosen_rate": sum(s[0] >= eps_run for s in states) / max(len(states), 1),
+           "mentor_minus_physics_median": np.median(np.stack(differences), 0).tolist() if differences else None,
+           "advantage_median_when_mentor_safe": statistics.median(mentor_safe) if mentor_safe else None,
+           "advantage_median_when_physics_safe": statistics.median(physics_safe) if physics_safe else None,
+           "selector_right": {}}
+    for eps in args.epsilons:
+        right = sum((s[0] >= eps) == (not s[1]) for s in decisive)
+        out["selector_right"][str(eps)] = right / max(len(decisive), 1)
+    return out
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("runs", nargs="+", type=Path)
+    parser.add_argument("--scenes", type=parse_scenes, default=parse_scenes("0-19"), help="train scene seeds, e.g. 0-19")
+    parser.add_argument("--hold", type=int, default=10, help="steps each candidate drives before the oracle does")
+    parser.add_argument("--horizon", type=int, default=40, help="steps of each counterfactual rollout")
+    parser.add_argument("--epsilons", type=float, nargs="+", default=[0.0, 0.5, 1.5])
+    parser.add_argument("--max-states", type=int, default=300, help="takeover states per run")
+    parser.add_argument("--json", type=Path, default=None)
+    args = parser.parse_args(argv)
+    torch.set_num_threads(1)
+    results = []
+    for run in args.runs:
+        t = time.time()
+        r = measure(run, args)
+        r["seconds"] = time.time() - t
+        results.append(r)
+        sel = ", ".join(f"eps {k}: {v:.2f}" for k, v in r["selector_right"].items())
+        print(f"{run}: {r['takeover_states']} takeover states, {r['decisive_states']} decisive "
+              f"(mentor fails {r['mentor_fails']}, physics fails {r['physics_fails']}, both {r['both_fail']}); "
+              f"mentor chosen at {r['mentor_chosen_rate']:.2f} of them (median advantage {r['advantage_median_all']}, "
+              f"median a_mentor - a_phy {r['mentor_minus_physics_median']}); "
+              f"right on decisive states: always mentor {r['always_mentor_right']:.2f}, {sel}; median advantage "
+              f"when the mentor is safe {r['advantage_median_when_mentor_safe']}, when physics is safe "
+              f"{r['advantage_median_when_physics_safe']}", flush=True)
+    if args.json:
+        args.json.write_text(json.dumps({"args": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()
+                                                  if k != "runs"}, "results": results}, indent=2) + "\n")
+    return results
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,46 @@
+"""``benchmarks/selector_accuracy.py`` on a smoke PE-RLHF run: counterfactual labels and consistent counts."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _load(name: str, path: Path):
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_selector_accuracy_on_a_smoke_run(tmp_path):
+    run = tmp_path / "run"
+    _load("pe_rlhf_recipe", ROOT / "recipes" / "pe_rlhf" / "train.py").main(
+        ["profile=smoke", "eval.video=false", "--out", str(run)])
+    bench = _load("selector_accuracy", ROOT / "benchmarks" / "selector_accuracy.py")
+    out = tmp_path / "acc.json"
+    (result,) = bench.main([str(run), "--scenes", "0-1", "--max-states", "12", "--horizon", "20",
+                            "--epsilons", "-1000", "1000", "--json", str(out)])
+    assert json.loads(out.read_text())["results"][0]["takeover_states"] == result["takeover_states"]
+    assert 1 <= result["takeover_states"] <= 12
+    n, decisive = result["takeover_states"], result["decisive_states"]
+    assert result["both_fail"] <= min(result["mentor_fails"], result["physics_fails"])
+    assert decisive == result["mentor_fails"] + result["physics_fails"] - 2 * result["both_fail"] <= n
+    # an epsilon below every advantage always picks the mentor, one above always picks physics
+    if decisive:
+        assert result["selector_right"]["-1000.0"] == pytest.approx(result["always_mentor_right"])
+        assert result["selector_right"]["1000.0"] == pytest.approx(1 - result["always_mentor_right"])
+
+
+def test_haco_run_is_refused(tmp_path):
+    run = tmp_path / "haco"
+    _load("pe_rlhf_recipe", ROOT / "recipes" / "pe_rlhf" / "train.py").main(
+        ["profile=smoke", "eval.video=false", "physics.enabled=false", "selector.enabled=false", "--out", str(run)])
+    bench = _load("selector_accuracy", ROOT / "benchmarks" / "selector_accuracy.py")
+    with pytest.raises(SystemExit, match="no ensemble"):
+        bench.main([str(run), "--max-states", "1"])
