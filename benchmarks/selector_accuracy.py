@@ -63,13 +63,24 @@ def fails(env, action, policy, hold: int, horizon: int, oracle: IDMMobilPolicy) 
     return False
 
 
+def count_events(states: list[tuple]) -> int:
+    """Decisive states come in runs (the steps of one approach to an obstacle): how many runs, counting
+    states of the same scene at most 10 steps apart as one."""
+    events, last = 0, None
+    for s in sorted(states, key=lambda s: (s[3], s[4])):
+        if last is None or s[3] != last[3] or s[4] - last[4] > 10:
+            events += 1
+        last = s
+    return events
+
+
 def measure(run: Path, args) -> dict:
     cfg, ensemble = load_run(run)
     env = make_gym_env(driving_config(cfg))
     mentor, driver, physics = build_mentor(cfg), IDMMobilPolicy(PhysicsConfig()), build_physics(cfg)
     oracle = IDMMobilPolicy(PhysicsConfig(see_obstacles=True))
     eps_run = float(cfg.selector.epsilon_select)
-    states = []  # (advantage, mentor_fails, physics_fails)
+    states = []  # (advantage, mentor_fails, physics_fails, scene seed, step)
     differences = []  # a_mentor - a_phy at every takeover state
     bar = tqdm(total=args.max_states, desc=run.name, leave=False)
     for seed in args.scenes:
@@ -77,7 +88,7 @@ def measure(run: Path, args) -> dict:
         mentor.reset(env)
         driver.reset()
         physics.reset()
-        done = False
+        done, step = False, 0
         while not done and len(states) < args.max_states:
             a_agent = np.asarray(driver(env), np.float32)
             decision = mentor.decide(env, a_agent)
@@ -91,11 +102,11 @@ def measure(run: Path, args) -> dict:
                 advantage = float((q[:, 0] - q[:, 1]).mean())
                 differences.append(a_mentor - a_phy)
                 states.append((advantage, fails(env, a_mentor, mentor.act, args.hold, args.horizon, oracle),
-                               fails(env, a_phy, physics, args.hold, args.horizon, oracle)))
+                               fails(env, a_phy, physics, args.hold, args.horizon, oracle), seed, step))
                 bar.update(1)
                 executed = a_mentor if advantage >= eps_run else a_phy
             obs, _, terminated, truncated, _ = env.step(executed)
-            done = terminated or truncated
+            done, step = terminated or truncated, step + 1
         if len(states) >= args.max_states:
             break
     bar.close()
@@ -104,6 +115,7 @@ def measure(run: Path, args) -> dict:
     physics_safe = [s[0] for s in decisive if not s[2]]
     out = {"run": str(run), "mentor": str(cfg.mentor.name), "selector_tau": float(cfg.selector.get("tau", 0.005)),
            "epsilon_select": eps_run, "takeover_states": len(states), "decisive_states": len(decisive),
+           "decisive_events": count_events(decisive), "scenes_driven": len({s[3] for s in states}),
            "mentor_fails": sum(s[1] for s in states), "physics_fails": sum(s[2] for s in states),
            "both_fail": sum(s[1] and s[2] for s in states),
            "always_mentor_right": len(mentor_safe) / max(len(decisive), 1),

@@ -31,6 +31,7 @@ def test_selector_accuracy_on_a_smoke_run(tmp_path):
     n, decisive = result["takeover_states"], result["decisive_states"]
     assert result["both_fail"] <= min(result["mentor_fails"], result["physics_fails"])
     assert decisive == result["mentor_fails"] + result["physics_fails"] - 2 * result["both_fail"] <= n
+    assert (decisive == 0) == (result["decisive_events"] == 0) and result["decisive_events"] <= decisive
     # an epsilon below every advantage always picks the mentor, one above always picks physics
     if decisive:
         assert result["selector_right"]["-1000.0"] == pytest.approx(result["always_mentor_right"])
