@@ -149,7 +149,7 @@ def main(argv=None):
         r["seconds"] = time.time() - t
         results.append(r)
         sel = ", ".join(f"eps {k}: {v:.2f}" for k, v in r["selector_right"].items())
-        print(f"{run}: {r['takeover_states']} takeover states, {r['decisive_states']} decisive "
+        print(f"{run}: {r['takeover_states']} takeover states, {r['decisive_states']} decisive in {r['decisive_events']} events "
               f"(mentor fails {r['mentor_fails']}, physics fails {r['physics_fails']}, both {r['both_fail']}); "
               f"mentor chosen at {r['mentor_chosen_rate']:.2f} of them (median advantage {r['advantage_median_all']}, "
               f"median a_mentor - a_phy {r['mentor_minus_physics_median']}); "
