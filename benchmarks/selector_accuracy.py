@@ -1,15 +1,15 @@
 """How often does a run's fitted Q-ensemble pick the safer of the mentor's and the physics' actions?
 
     python benchmarks/selector_accuracy.py RUN_DIR [RUN_DIR ...] [--scenes 0-19] [--hold 10] [--horizon 40]
-        [--epsilons 0 0.5 1.5] [--max-states 300] [--json out.json]
+        [--epsilons 0 0.5 1.5] [--max-states 300] [--every 10] [--json out.json]
 
 For each run folder (PE-RLHF recipe; its ``config.yaml`` and the Q-ensemble in its newest checkpoint):
 obstacle-blind IDM-MOBIL drives the train scenes as the agent, under the run's own mentor (its
 ``mentor.name`` / ``mentor.seed``), physics policy (its ``physics.*`` flags) and selector (``epsilon_select``),
-so the states are those a PE-RLHF takeover meets. At every takeover step both candidates are tried on copies of the simulator (and
-of the mentor or physics policy): the candidate's action, then its own driver for the rest of ``--hold``
-steps (a takeover lasts at least 10), then IDM-MOBIL that sees obstacles (0.98 success on the test scenes)
-for the rest of ``--horizon`` steps. A candidate *fails* when its copy crashes or leaves the road
+so the states are those a PE-RLHF takeover meets. At every ``--every``-th takeover step both candidates
+are tried on copies of the simulator (and of the mentor or physics policy): the candidate's action, then
+its own driver for the rest of ``--hold`` steps (a takeover lasts at least 10), then IDM-MOBIL that sees
+obstacles (0.98 success on the test scenes) for the rest of ``--horizon`` steps. A candidate *fails* when its copy crashes or leaves the road
 within the horizon. On the *decisive* states (exactly one candidate fails) the selector is right when it
 picks the other one; reported per ``--epsilons`` value, with "always the mentor" and "always physics" as
 references, plus the advantage ``mean_k Q_k(s, a_mentor) - Q_k(s, a_phy)`` on the decisive states split by
@@ -88,7 +88,7 @@ def measure(run: Path, args) -> dict:
         mentor.reset(env)
         driver.reset()
         physics.reset()
-        done, step = False, 0
+        done, step, seen = False, 0, 0
         while not done and len(states) < args.max_states:
             a_agent = np.asarray(driver(env), np.float32)
             decision = mentor.decide(env, a_agent)
@@ -100,8 +100,10 @@ def measure(run: Path, args) -> dict:
                 with torch.no_grad():
                     q = ensemble.values(torch.as_tensor(np.stack([obs, obs])), torch.as_tensor(np.stack([a_mentor, a_phy])))
                 advantage = float((q[:, 0] - q[:, 1]).mean())
-                differences.append(a_mentor - a_phy)
-                states.append((advantage, fails(env, a_mentor, mentor.act, args.hold, args.horizon, oracle),
+                seen += 1
+                if seen % args.every == 0:  # label every k-th takeover state: more scenes for the same cost
+                    differences.append(a_mentor - a_phy)
+                    states.append((advantage, fails(env, a_mentor, mentor.act, args.hold, args.horizon, oracle),
                                fails(env, a_phy, physics, args.hold, args.horizon, oracle), seed, step))
                 bar.update(1)
                 executed = a_mentor if advantage >= eps_run else a_phy
@@ -138,7 +140,8 @@ def main(argv=None):
     parser.add_argument("--hold", type=int, default=10, help="steps each candidate drives before the oracle does")
     parser.add_argument("--horizon", type=int, default=40, help="steps of each counterfactual rollout")
     parser.add_argument("--epsilons", type=float, nargs="+", default=[0.0, 0.5, 1.5])
-    parser.add_argument("--max-states", type=int, default=300, help="takeover states per run")
+    parser.add_argument("--max-states", type=int, default=300, help="labelled takeover states per run")
+    parser.add_argument("--every", type=int, default=10, help="label every k-th takeover state (1: all of them)")
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
     torch.set_num_threads(1)

@@ -24,7 +24,7 @@ def test_selector_accuracy_on_a_smoke_run(tmp_path):
         ["profile=smoke", "eval.video=false", "--out", str(run)])
     bench = _load("selector_accuracy", ROOT / "benchmarks" / "selector_accuracy.py")
     out = tmp_path / "acc.json"
-    (result,) = bench.main([str(run), "--scenes", "0-1", "--max-states", "12", "--horizon", "20",
+    (result,) = bench.main([str(run), "--scenes", "0-1", "--max-states", "12", "--every", "1", "--horizon", "20",
                             "--epsilons", "-1000", "1000", "--json", str(out)])
     assert json.loads(out.read_text())["results"][0]["takeover_states"] == result["takeover_states"]
     assert 1 <= result["takeover_states"] <= 12
