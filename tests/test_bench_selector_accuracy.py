@@ -2,27 +2,17 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
-from pathlib import Path
 
 import pytest
-
-ROOT = Path(__file__).resolve().parents[1]
-
-
-def _load(name: str, path: Path):
-    spec = importlib.util.spec_from_file_location(name, path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+from _scripts import load_script
 
 
 def test_selector_accuracy_on_a_smoke_run(tmp_path):
     run = tmp_path / "run"
-    _load("pe_rlhf_recipe", ROOT / "recipes" / "pe_rlhf" / "train.py").main(
+    load_script("recipes/pe_rlhf/train.py", "pe_rlhf_recipe").main(
         ["profile=smoke", "eval.video=false", "--out", str(run)])
-    bench = _load("selector_accuracy", ROOT / "benchmarks" / "selector_accuracy.py")
+    bench = load_script("benchmarks/selector_accuracy.py")
     out = tmp_path / "acc.json"
     (result,) = bench.main([str(run), "--scenes", "0-1", "--max-states", "12", "--every", "1", "--horizon", "20",
                             "--epsilons", "-1000", "1000", "--json", str(out)])
@@ -40,8 +30,8 @@ def test_selector_accuracy_on_a_smoke_run(tmp_path):
 
 def test_haco_run_is_refused(tmp_path):
     run = tmp_path / "haco"
-    _load("pe_rlhf_recipe", ROOT / "recipes" / "pe_rlhf" / "train.py").main(
+    load_script("recipes/pe_rlhf/train.py", "pe_rlhf_recipe").main(
         ["profile=smoke", "eval.video=false", "physics.enabled=false", "selector.enabled=false", "--out", str(run)])
-    bench = _load("selector_accuracy", ROOT / "benchmarks" / "selector_accuracy.py")
+    bench = load_script("benchmarks/selector_accuracy.py")
     with pytest.raises(SystemExit, match="no ensemble"):
         bench.main([str(run), "--max-states", "1"])
