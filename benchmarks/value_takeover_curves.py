@@ -17,21 +17,17 @@ import json
 from pathlib import Path
 
 import numpy as np
-from omegaconf import OmegaConf
 
-from pe_rlhf.sweeps.plots import windowed_value_takeover_rate
-from pe_rlhf.training.metrics_logger import read_metrics_csv
+from pe_rlhf.sweeps.plots import run_curve, run_warmup_steps
 
 
 def run_curves(run: Path) -> dict:
     """``{"window": {steps: rate}, "cumulative": {...}, "fatigue": {...}, "first_third", "last_third"}``."""
-    _, rows = read_metrics_csv(run / "metrics.csv")
-    warmup = float(OmegaConf.load(run / "config.yaml").collector.warmup_steps)
-    window = windowed_value_takeover_rate(rows, warmup)
-    online = [r for r in rows if r.get("env_steps", 0) > warmup]
+    warmup, metrics = run_warmup_steps(run), run / "metrics.csv"
+    window = run_curve(metrics, "windowed_value_takeover_rate")
     out = {"window": window,
-           "cumulative": {r["env_steps"]: r["train/value_takeover_rate"] for r in online if "train/value_takeover_rate" in r},
-           "fatigue": {r["env_steps"]: r["train/mentor_fatigue"] for r in rows if "train/mentor_fatigue" in r}}
+           "cumulative": {s: v for s, v in run_curve(metrics, "train/value_takeover_rate").items() if s > warmup},
+           "fatigue": run_curve(metrics, "train/mentor_fatigue")}
     steps = sorted(window)
     if steps:
         third = (steps[-1] - warmup) / 3

@@ -143,23 +143,27 @@ def plot_summary(path: Path, cells: Sequence[Cell], table: list[dict], metrics: 
     return path
 
 
-def _run_curve(path: Path, column: str) -> dict[float, float]:
-    """``{env_steps: value}`` of one run: a logged column, or ``windowed_value_takeover_rate``."""
+def run_warmup_steps(run_dir: Path) -> float:
+    """A run folder's ``collector.warmup_steps`` (0 without a ``config.yaml``)."""
+    from omegaconf import OmegaConf
+
+    config = Path(run_dir) / "config.yaml"
+    return float(OmegaConf.load(config).collector.warmup_steps) if config.is_file() else 0.0
+
+
+def run_curve(path: Path, column: str) -> dict[float, float]:
+    """``{env_steps: value}`` of one run's ``metrics.csv``: a logged column, or ``windowed_value_takeover_rate``."""
     from pe_rlhf.training.metrics_logger import read_metrics_csv
 
     _, rows = read_metrics_csv(path)
     if column == "windowed_value_takeover_rate":
-        from omegaconf import OmegaConf
-
-        config = path.parent / "config.yaml"
-        warmup = float(OmegaConf.load(config).collector.warmup_steps) if config.is_file() else 0.0
-        return windowed_value_takeover_rate(rows, warmup)
+        return windowed_value_takeover_rate(rows, run_warmup_steps(Path(path).parent))
     return {r["env_steps"]: r[column] for r in rows if "env_steps" in r and column in r}
 
 
 def _mean_curve(paths: list[Path], column: str) -> tuple[np.ndarray, np.ndarray] | None:
     """Mean of ``column`` over the runs at the env steps all of them logged."""
-    runs = [curve for path in paths if (curve := _run_curve(path, column))]
+    runs = [curve for path in paths if (curve := run_curve(path, column))]
     if not runs:
         return None
     steps = sorted(set.intersection(*(set(r) for r in runs)))
