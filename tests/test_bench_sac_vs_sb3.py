@@ -2,22 +2,15 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
-from pathlib import Path
 
 import pytest
+from _scripts import load_script
 
 pytest.importorskip("stable_baselines3")
 
-BENCH = Path(__file__).resolve().parents[1] / "benchmarks" / "sac_vs_sb3.py"
-
-
 def _load_bench():
-    spec = importlib.util.spec_from_file_location("sac_vs_sb3", BENCH)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("benchmarks/sac_vs_sb3.py")
 
 
 def test_toy_run_times_equal_windows(tmp_path):

@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import csv
-import importlib.util
 import json
 import math
 from pathlib import Path
+
+from _scripts import load_script
 
 from pe_rlhf.training import builders
 from pe_rlhf.training.config import driving_config, load_config
@@ -16,10 +17,7 @@ RECIPE_DIR = Path(__file__).resolve().parents[1] / "recipes" / "haim_drl"
 
 
 def _load_recipe():
-    spec = importlib.util.spec_from_file_location("haim_drl_recipe", RECIPE_DIR / "train.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("recipes/haim_drl/train.py", "haim_drl_recipe")
 
 
 def test_builders_add_the_transform_after_the_takeover_and_a_disturbance_critic():

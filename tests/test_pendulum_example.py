@@ -2,19 +2,12 @@
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
-
-EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "pendulum_intervention.py"
+from _scripts import load_script
 
 
 def _load_example():
-    spec = importlib.util.spec_from_file_location("pendulum_intervention", EXAMPLE)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("examples/pendulum_intervention.py")
 
 
 def test_takeover_rate_falls_over_training():

@@ -10,6 +10,7 @@ import math
 from pathlib import Path
 
 import pytest
+from _scripts import load_script
 
 from pe_rlhf.sweeps import SweepConfigError, check_cell_configs, expand, load_sweep, parse_sweep, run_sweep
 from pe_rlhf.sweeps.cells import CELL_FILE, FINAL_EVAL, attempt_argv, check_folder, plan, write_record
@@ -256,12 +257,7 @@ def test_windowed_value_takeover_rate_counts_only_online_batches_in_the_window()
 # -- a real sweep on local Ray ---------------------------------------------------------------------
 def test_two_cell_sweep_on_local_ray(tmp_path):
     ray = pytest.importorskip("ray")
-    import importlib.util
-
-    runs = importlib.util.spec_from_file_location("reliability_runs", ROOT / "tests" / "reliability" / "_runs.py")
-    module = importlib.util.module_from_spec(runs)
-    runs.loader.exec_module(module)
-    TINY = module.TINY  # the reliability tests' few-second training runs
+    TINY = load_script("tests/reliability/_runs.py", "reliability_runs").TINY  # the reliability tests' few-second runs
 
     spec = parse_sweep({"name": "smoke", "base": [*TINY, "collector.total_frames=100"], "seeds": [0],
                         "methods": ["pe-rlhf", "haco"],

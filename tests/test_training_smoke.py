@@ -3,19 +3,15 @@
 from __future__ import annotations
 
 import csv
-import importlib.util
 import json
 import math
-from pathlib import Path
 
-RECIPE = Path(__file__).resolve().parents[1] / "recipes" / "pe_rlhf" / "train.py"
+import pytest
+from _scripts import load_script
 
 
 def _load_recipe():
-    spec = importlib.util.spec_from_file_location("pe_rlhf_recipe", RECIPE)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("recipes/pe_rlhf/train.py", "pe_rlhf_recipe")
 
 
 def test_smoke_run_writes_every_output(tmp_path):
@@ -52,8 +48,6 @@ def test_smoke_run_writes_every_output(tmp_path):
 
 
 def test_unknown_compare_policy_fails_before_training(tmp_path, capsys):
-    import pytest
-
     with pytest.raises(SystemExit):
         _load_recipe().main(["profile=smoke", "--out", str(tmp_path), "--compare", "idm-mobl"])
     assert "allowed" in capsys.readouterr().err and not (tmp_path / "metrics.csv").exists()
