@@ -159,6 +159,31 @@ def test_baseline_training_totals_and_demonstrations(tmp_path):
     assert rows["SAC-RS"][2:6] == ["—", "300", "1.5", "3.00"]  # no metrics.csv: the training totals
 
 
+def test_offline_row_is_a_dotted_level_at_its_final_test_value(tmp_path, monkeypatch):
+    """BC logs no env steps, so the test panels show its final value as a dotted level across the axis;
+    a trained row with env steps gets a dot at its last step instead."""
+    import matplotlib.pyplot as plt
+
+    from pe_rlhf.compare.plots import plot_learning_curves
+
+    make_run(tmp_path / "bc", {"method": "bc", "seed": 0, "data": {"mentor": "professional"}},
+             _final(dict(zip(TEST_KEYS, (1.0, 0.25, 0.0, 5.0, 1.0, 0.0))), {"env_steps": 0}, method="BC"),
+             [{"step": 100, "env_steps": 0, "wall_time": 30.0}])
+    make_run(tmp_path / "hgd", {"method": "hg_dagger", "seed": 0, "mentor": {"name": "professional"}},
+             _final(dict(zip(TEST_KEYS, (1.0, 0.75, 0.0, 5.0, 1.0, 0.0))), {"env_steps": 300}),
+             [{"step": 300, "env_steps": 300, "wall_time": 60.0, "train/takeover_data_usage": 0.4}])
+    rows, _ = collect_rows([str(tmp_path / "bc"), str(tmp_path / "hgd")])
+    figures = []
+    monkeypatch.setattr(plt, "close", figures.append)  # keep the figure the function would close
+    plot_learning_curves(tmp_path / "curves.png", rows)
+    success_axis = figures[0].axes[0]
+    assert success_axis.get_title() == "test success rate"
+    dotted = [line for line in success_axis.lines if line.get_linestyle() == ":"]
+    assert len(dotted) == 1 and list(dotted[0].get_ydata()) == [0.25, 0.25]
+    dots = [line for line in success_axis.lines if line.get_marker() == "o"]
+    assert len(dots) == 1 and list(dots[0].get_xdata()) == [300.0] and list(dots[0].get_ydata()) == [0.75]
+
+
 # -- labels --------------------------------------------------------------------------------------------
 @pytest.mark.parametrize("config, final, label", [
     (_proxy_q_config(), {}, "PE-RLHF"),

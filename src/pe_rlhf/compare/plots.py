@@ -4,7 +4,8 @@ band. Seeds logged at different env steps are interpolated onto the steps inside
 
 The test panels read the periodic evaluation's ``eval/*_mean`` columns (when ``eval.every_frames`` ran) and
 mark each trained row's final test value (mean over seeds, ``final_eval.json``) at its last env step; an
-evaluation-only row (IDM-MOBIL) is a dashed level. Runs that take no env steps (BC, CQL) have no curve.
+evaluation-only row (IDM-MOBIL) is a dashed level. Rows that take no env steps (BC, CQL: offline learners)
+have no curve; their final test value is a dotted level.
 """
 
 from __future__ import annotations
@@ -117,6 +118,9 @@ def plot_learning_curves(path: str | Path, rows: list[Row]) -> Path:
             if math.isfinite(final) and math.isfinite(last_steps[row.label]):
                 ax.plot([last_steps[row.label]], [final], marker="o", color=color, linestyle="none")
                 drawn = True
+            elif math.isfinite(final):  # an offline row: no env steps to place a dot at
+                ax.axhline(final, color=color, linestyle=":", linewidth=1.4)
+                drawn = True
         ax.set_title(title, fontsize=9)
         ax.set_xlabel("env steps", fontsize=8)
         ax.tick_params(labelsize=7)
@@ -127,11 +131,16 @@ def plot_learning_curves(path: str | Path, rows: list[Row]) -> Path:
             ax.text(0.5, 0.5, "no data", ha="center", va="center", transform=ax.transAxes, color="0.5")
     for ax in list(axes.flat)[len(PANELS):]:
         ax.set_visible(False)
-    handles = [Line2D([], [], color=color, linestyle="-" if row.kind == TRAINED else "--")
-               for row, color in zip(rows, colors)]
+    def style(row: Row) -> str:
+        if row.kind != TRAINED:
+            return "--"
+        return "-" if math.isfinite(last_steps[row.label]) else ":"
+
+    handles = [Line2D([], [], color=color, linestyle=style(row)) for row, color in zip(rows, colors)]
     fig.legend(handles, [row.label for row in rows], loc="lower center", ncol=min(5, len(rows)), fontsize=8,
                frameon=False)
-    fig.suptitle("Learning curves: mean over seeds, band min-max; dot: final test; dashed: evaluation-only row",
+    fig.suptitle("Learning curves: mean over seeds, band min-max; dot: final test; dashed: evaluation-only row; "
+                 "dotted: offline row's final test",
                  fontsize=9)
     fig.tight_layout(rect=(0, 0.04 + 0.03 * math.ceil(len(rows) / 5), 1, 0.96))
     fig.savefig(path, dpi=110)
