@@ -288,6 +288,44 @@ def test_cli_writes_markdown_csv_png_in_paper_column_order(haco_dir, tmp_path, c
     assert list(_csv(out / "table.csv")) == ["PE-RLHF", "HACO", "IDM-MOBIL"]
 
 
+def test_group_figures_hold_their_rows_and_the_reference_levels(haco_dir, tmp_path, capsys, monkeypatch):
+    """``--group rlhf=HACO`` draws learning_curves_rlhf.png with HACO and IDM-MOBIL only; table.md embeds it."""
+    import matplotlib.pyplot as plt
+
+    make_run(tmp_path / "pe" / "seed_0", _proxy_q_config(0), _final(dict(zip(TEST_KEYS, [1.0] * 6)),
+                                                                    {"frames": 1000.0}), _curve(1000, 0.3, 60.0, 2.0))
+    ev = _eval_json(tmp_path / "idm.json")
+    out = tmp_path / "out"
+    figures = []
+    monkeypatch.setattr(plt, "close", figures.append)
+    assert cli_main(["compare", "--row", f"HACO={haco_dir}", "--row", f"PE-RLHF={tmp_path / 'pe'}",
+                     "--eval", f"IDM-MOBIL={ev}", "--group", "rlhf=HACO", "--out", str(out)]) == 0
+    md = (out / "table.md").read_text()
+    assert "![learning curves](learning_curves.png)" in md and "![learning curves rlhf](learning_curves_rlhf.png)" in md
+    assert (out / "learning_curves_rlhf.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    full, group = figures
+    assert group.get_suptitle().startswith("rlhf: ") and not full.get_suptitle().startswith("rlhf")
+    def legend(fig):
+        return [t.get_text() for t in fig.legends[0].get_texts()]
+    assert legend(full) == ["IDM-MOBIL", "HACO", "PE-RLHF"] and legend(group) == ["IDM-MOBIL", "HACO"]
+
+
+def test_group_specs_are_checked_before_anything_is_written(haco_dir, tmp_path, capsys):
+    from pe_rlhf.compare import parse_group, select_group
+
+    assert parse_group(" rl = SAC-RS, PPO-RS ,") == ("rl", ["SAC-RS", "PPO-RS"])
+    for bad in ("rl", "=HACO", "r l=HACO", "rl="):
+        with pytest.raises(CompareError, match=re.escape(f"--group {bad!r}")):
+            parse_group(bad)
+    rows, _ = collect_rows([f"HACO={haco_dir}"])
+    with pytest.raises(CompareError, match="no row labelled 'SAC-RS'; rows: HACO"):
+        select_group(rows, ["SAC-RS"])
+    with pytest.raises(SystemExit) as exit_info:  # the CLI: a usage error, and no output folder
+        cli_main(["compare", "--row", f"HACO={haco_dir}", "--group", "rl=SAC-RS", "--out", str(tmp_path / "o")])
+    assert exit_info.value.code == 2 and "no row labelled 'SAC-RS'" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
 def test_learning_curve_mean_and_band_over_seeds(haco_dir):
     from pe_rlhf.compare.plots import row_curve
 

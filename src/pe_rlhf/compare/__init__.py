@@ -5,7 +5,8 @@
 
 Parts: :mod:`~pe_rlhf.compare.rows` (which run folders / evaluation JSONs make each row, labels, order),
 :mod:`~pe_rlhf.compare.table` (the columns, read with :mod:`pe_rlhf.sweeps.summary`'s readers; mean ± std
-over seeds; ``table.md``, ``table.csv``), :mod:`~pe_rlhf.compare.plots` (``learning_curves.png``) and
+over seeds; ``table.md``, ``table.csv``), :mod:`~pe_rlhf.compare.plots` (``learning_curves.png``), :mod:`~pe_rlhf.compare.groups` (a figure per
+group of rows) and
 :mod:`~pe_rlhf.compare.cli`.
 """
 
@@ -14,6 +15,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from pathlib import Path
 
+from pe_rlhf.compare.groups import group_png, parse_group, select_group
 from pe_rlhf.compare.plots import LEARNING_CURVES_PNG, plot_learning_curves
 from pe_rlhf.compare.rows import CompareError, Row, Source, collect_rows, infer_label
 from pe_rlhf.compare.table import COLUMNS, aggregate_rows, markdown_table, write_table
@@ -21,19 +23,25 @@ from pe_rlhf.compare.table import COLUMNS, aggregate_rows, markdown_table, write
 
 def write_comparison(out: str | Path, runs: Sequence[str] = (), evaluations: Sequence[str] = (),
                      globs: Sequence[str] = (), order: list[str] | None = None, title: str = "Table 1",
-                     plot: bool = True) -> tuple[dict[str, Path], str, list[str]]:
+                     plot: bool = True, groups: Sequence[str] = ()) -> tuple[dict[str, Path], str, list[str]]:
     """Collect the rows (``--row`` / ``--eval`` / ``--glob`` specs), write ``table.md``, ``table.csv`` and
     (``plot``) ``learning_curves.png`` into ``out``; returns ``({name: path}, the Markdown table, notes)``.
-    CompareError naming the bad path or spec."""
+    Each ``groups`` spec ``NAME=LABEL,LABEL...`` also draws ``learning_curves_<name>.png`` with those rows
+    and every evaluation-only row (the reference levels). CompareError naming the bad path or spec."""
     rows, notes = collect_rows(list(runs), list(evaluations), list(globs), order)
+    figures = [(name, select_group(rows, labels)) for name, labels in map(parse_group, groups)]  # fail before writing
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    image = plot_learning_curves(out / LEARNING_CURVES_PNG, rows) if plot else None
-    paths, md = write_table(out, rows, title=title, image=image.name if image else None, notes=notes)
-    if image:
-        paths["learning_curves"] = image
-    return paths, md, notes
+    images = {}
+    if plot:
+        images["learning_curves"] = plot_learning_curves(out / LEARNING_CURVES_PNG, rows)
+        for name, members in figures:
+            images[f"learning_curves_{name}"] = plot_learning_curves(out / group_png(name), members, title=name)
+    paths, md = write_table(out, rows, title=title, images=[(key, p.name) for key, p in images.items()],
+                            notes=notes)
+    return {**paths, **images}, md, notes
 
 
 __all__ = ["COLUMNS", "CompareError", "Row", "Source", "aggregate_rows", "collect_rows", "infer_label",
-           "markdown_table", "plot_learning_curves", "write_comparison", "write_table"]
+           "markdown_table", "parse_group", "plot_learning_curves", "select_group", "write_comparison",
+           "write_table"]

@@ -5,6 +5,7 @@
     pe-rlhf compare --glob 'runs/*/seed_*' --glob 'docs/results/idm-mobil_test.json' --out runs/table1
     pe-rlhf compare --row runs/sac_rs_s0,runs/sac_rs_s1 --row runs/lanes --out runs/t --order PE-RLHF,SAC-RS
                                                        # labels inferred from config.yaml; rows in this order
+    pe-rlhf compare ... --group rl=SAC-RS,PPO-RS --group rlhf=HACO,PE-RLHF   # + one figure per group
 """
 
 from __future__ import annotations
@@ -21,7 +22,8 @@ def run_compare(args: argparse.Namespace, parser: argparse.ArgumentParser) -> in
     order = [label.strip() for label in args.order.split(",") if label.strip()] if args.order else None
     try:
         paths, md, notes = write_comparison(args.out, runs=args.row, evaluations=args.eval, globs=args.glob,
-                                            order=order, title=args.title, plot=not args.no_plot)
+                                            order=order, title=args.title, plot=not args.no_plot,
+                                            groups=args.group)
     except CompareError as e:
         parser.error(str(e))
     for note in notes:
@@ -51,6 +53,9 @@ def add_compare_parser(subparsers: argparse._SubParsersAction) -> argparse.Argum
     p.add_argument("--out", required=True, metavar="DIR", help="where table.md, table.csv and learning_curves.png go")
     p.add_argument("--order", metavar="LABEL,...", help="row order (labels); rows not named come after "
                    "(default: the paper's Table 1 order)")
+    p.add_argument("--group", action="append", default=[], metavar="NAME=LABEL,...",
+                   help="also draw OUT/learning_curves_NAME.png with these rows (and the evaluation-only rows "
+                   "as reference levels), e.g. rl=SAC-RS,PPO-RS; repeatable")
     p.add_argument("--title", default="Table 1", help="the Markdown file's heading")
     p.add_argument("--no-plot", action="store_true", help="skip learning_curves.png")
     p.set_defaults(handler=run_compare, subparser=p)

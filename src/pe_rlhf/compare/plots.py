@@ -80,8 +80,9 @@ def _last_step(row: Row) -> float:
     return float(np.mean(steps)) if steps else math.nan
 
 
-def plot_learning_curves(path: str | Path, rows: list[Row]) -> Path:
-    """Draw :data:`PANELS` for ``rows`` into ``path`` (a panel without data says so)."""
+def plot_learning_curves(path: str | Path, rows: list[Row], title: str | None = None) -> Path:
+    """Draw :data:`PANELS` for ``rows`` into ``path`` (a panel without data says so); ``title`` heads the
+    figure's caption line."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -98,7 +99,7 @@ def plot_learning_curves(path: str | Path, rows: list[Row]) -> Path:
         [plt.get_cmap("tab20")(i % 20) for i in range(len(rows))]
     last_steps = {row.label: _last_step(row) for row in rows if row.kind == TRAINED}
     finite_steps = [x for x in last_steps.values() if math.isfinite(x)]
-    for ax, (column, title, final_key, window) in zip(axes.flat, PANELS):
+    for ax, (column, panel_title, final_key, window) in zip(axes.flat, PANELS):
         drawn = False
         for row, color in zip(rows, colors):
             if row.kind != TRAINED:
@@ -121,7 +122,7 @@ def plot_learning_curves(path: str | Path, rows: list[Row]) -> Path:
             elif math.isfinite(final):  # an offline row: no env steps to place a dot at
                 ax.axhline(final, color=color, linestyle=":", linewidth=1.4)
                 drawn = True
-        ax.set_title(title, fontsize=9)
+        ax.set_title(panel_title, fontsize=9)
         ax.set_xlabel("env steps", fontsize=8)
         ax.tick_params(labelsize=7)
         ax.grid(alpha=0.3)
@@ -139,8 +140,8 @@ def plot_learning_curves(path: str | Path, rows: list[Row]) -> Path:
     handles = [Line2D([], [], color=color, linestyle=style(row)) for row, color in zip(rows, colors)]
     fig.legend(handles, [row.label for row in rows], loc="lower center", ncol=min(5, len(rows)), fontsize=8,
                frameon=False)
-    fig.suptitle("Learning curves: mean over seeds, band min-max; dot: final test; dashed: evaluation-only row; "
-                 "dotted: offline row's final test",
+    fig.suptitle(f"{title + ': ' if title else ''}learning curves, mean over seeds, band min-max; dot: final test; "
+                 "dashed: evaluation-only row; dotted: offline row's final test",
                  fontsize=9)
     fig.tight_layout(rect=(0, 0.04 + 0.03 * math.ceil(len(rows) / 5), 1, 0.96))
     fig.savefig(path, dpi=110)

@@ -21,6 +21,7 @@ the CSV. One seed shows its value without ``± std``.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -132,9 +133,10 @@ def _describe(row: Row) -> str:
     return f"- **{row.label}** ({row.kind}{', ' + episodes if episodes else ''}): {seeds}"
 
 
-def write_table(out: str | Path, rows: list[Row], title: str = "Table 1", image: str | None = None,
-                notes: list[str] = ()) -> tuple[dict[str, Path], str]:
-    """``table.md`` and ``table.csv`` in ``out``; returns ``({name: path}, the Markdown table)``."""
+def write_table(out: str | Path, rows: list[Row], title: str = "Table 1",
+                images: Sequence[tuple[str, str]] = (), notes: list[str] = ()) -> tuple[dict[str, Path], str]:
+    """``table.md`` (embedding ``images``: ``(alt text, file name)`` pairs) and ``table.csv`` in ``out``;
+    returns ``({name: path}, the Markdown table)``."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     table = aggregate_rows(rows)
@@ -149,8 +151,8 @@ def write_table(out: str | Path, rows: list[Row], title: str = "Table 1", image:
             "/ online steps (offline imitation: the demonstrations' share); total data = env steps + recorded "
             "demonstration steps; training time = the last `wall_time`; train safety viol. = training "
             "violations + the demonstrations'. — = no value."), "", md]
-    if image:
-        text += [f"![learning curves]({image})", ""]
+    for alt, name in images:
+        text += [f"![{alt.replace('_', ' ')}]({name})", ""]
     text += ["## Rows", "", *(_describe(row) for row in rows)]
     if notes:
         text += ["", "## Notes", "", *(f"- {n}" for n in notes)]
