@@ -281,6 +281,8 @@ def test_cli_writes_markdown_csv_png_in_paper_column_order(haco_dir, tmp_path, c
     assert "skipped unfinished run" in captured.err
     md = (out / "table.md").read_text()
     assert md.startswith("# T1\n") and "![learning curves](learning_curves.png)" in md
+    assert "## Test success at each periodic evaluation" in md  # PE-RLHF logged eval/success_rate_mean
+    assert "- **PE-RLHF**: 500 0.00 · 1K 0.10" in md and "- **HACO**:" not in md  # HACO logged no evaluation
     assert list(_md_rows(md)) == ["PE-RLHF", "HACO", "IDM-MOBIL"]
     assert _md_rows(md) == _md_rows(captured.out)  # stdout prints the same table
     png = out / "learning_curves.png"

@@ -133,6 +133,23 @@ def _describe(row: Row) -> str:
     return f"- **{row.label}** ({row.kind}{', ' + episodes if episodes else ''}): {seeds}"
 
 
+def _steps_text(steps: float) -> str:
+    return f"{steps / 1000:g}K" if steps >= 1000 else f"{steps:g}"
+
+
+def periodic_success(row: Row) -> str | None:
+    """``"10K 0.00 · 20K 0.40 · 30K 0.50"``: the row's test success at each periodic evaluation logged in
+    ``metrics.csv`` (mean over seeds at the env steps all seeds share), or None when none was logged. Shows
+    whether a curve has flattened by the end of its budget."""
+    from pe_rlhf.compare.plots import row_curve
+
+    curve = row_curve(row, "eval/success_rate_mean")
+    if curve is None:
+        return None
+    steps, mean, _, _ = curve
+    return " · ".join(f"{_steps_text(x)} {y:.2f}" for x, y in zip(steps, mean))
+
+
 def write_table(out: str | Path, rows: list[Row], title: str = "Table 1",
                 images: Sequence[tuple[str, str]] = (), notes: list[str] = ()) -> tuple[dict[str, Path], str]:
     """``table.md`` (embedding ``images``: ``(alt text, file name)`` pairs) and ``table.csv`` in ``out``;
@@ -154,6 +171,12 @@ def write_table(out: str | Path, rows: list[Row], title: str = "Table 1",
     for alt, name in images:
         text += [f"![{alt.replace('_', ' ')}]({name})", ""]
     text += ["## Rows", "", *(_describe(row) for row in rows)]
+    periodic = [(row.label, line) for row in rows if row.kind == TRAINED and (line := periodic_success(row))]
+    if periodic:
+        text += ["", "## Test success at each periodic evaluation", "",
+                 "Mean over seeds at the env steps every seed evaluated at (`eval/success_rate_mean` in "
+                 "`metrics.csv`); a curve still rising at its last evaluation has not flattened.", "",
+                 *(f"- **{label}**: {line}" for label, line in periodic)]
     if notes:
         text += ["", "## Notes", "", *(f"- {n}" for n in notes)]
     (out / TABLE_MD).write_text("\n".join(text).rstrip() + "\n")
