@@ -5,9 +5,8 @@
 
 Parts: :mod:`~pe_rlhf.compare.rows` (which run folders / evaluation JSONs make each row, labels, order),
 :mod:`~pe_rlhf.compare.table` (the columns, read with :mod:`pe_rlhf.sweeps.summary`'s readers; mean ± std
-over seeds; ``table.md``, ``table.csv``), :mod:`~pe_rlhf.compare.plots` (``learning_curves.png``), :mod:`~pe_rlhf.compare.groups` (a figure per
-group of rows) and
-:mod:`~pe_rlhf.compare.cli`.
+over seeds; ``table.md``, ``table.csv``), :mod:`~pe_rlhf.compare.plots` (``learning_curves.png``),
+:mod:`~pe_rlhf.compare.groups` (a figure per group of rows) and :mod:`~pe_rlhf.compare.cli`.
 """
 
 from __future__ import annotations
