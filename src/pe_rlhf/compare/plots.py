@@ -31,11 +31,17 @@ PANELS = (
 )
 
 
-@lru_cache(maxsize=64)
-def _csv_rows(csv_path: Path) -> tuple[dict[str, float], ...]:
+@lru_cache(maxsize=128)
+def _read_rows(csv_path: Path, mtime_ns: int, size: int) -> tuple[dict[str, float], ...]:
     from pe_rlhf.training.metrics_logger import read_metrics_csv
 
     return tuple(read_metrics_csv(csv_path)[1])
+
+
+def _csv_rows(csv_path: Path) -> tuple[dict[str, float], ...]:
+    """The rows of ``csv_path``, read once per version of the file (a rewritten file is read again)."""
+    stat = Path(csv_path).stat()
+    return _read_rows(Path(csv_path), stat.st_mtime_ns, stat.st_size)
 
 
 def _run_curve(csv_path: Path, column: str, window: int = 1) -> tuple[np.ndarray, np.ndarray] | None:
@@ -89,7 +95,6 @@ def plot_learning_curves(path: str | Path, rows: list[Row], title: str | None = 
     import matplotlib.pyplot as plt
     from matplotlib.lines import Line2D
 
-    _csv_rows.cache_clear()  # read each metrics.csv once per figure, afresh each time
     path = Path(path)
     cols = 3
     lines = math.ceil(len(PANELS) / cols)

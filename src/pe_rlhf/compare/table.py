@@ -25,6 +25,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from pe_rlhf.compare.plots import row_curve
 from pe_rlhf.compare.rows import TRAINED, Row
 from pe_rlhf.sweeps.summary import (
     METRICS,
@@ -141,8 +142,6 @@ def periodic_success(row: Row) -> str | None:
     """``"10K 0.00 · 20K 0.40 · 30K 0.50"``: the row's test success at each periodic evaluation logged in
     ``metrics.csv`` (mean over seeds at the env steps all seeds share), or None when none was logged. Shows
     whether a curve has flattened by the end of its budget."""
-    from pe_rlhf.compare.plots import row_curve
-
     curve = row_curve(row, "eval/success_rate_mean")
     if curve is None:
         return None
