@@ -9,8 +9,8 @@ obstacle-blind IDM-MOBIL drives the train scenes as the agent, under the run's o
 so the states are those a PE-RLHF takeover meets. At every ``--every``-th takeover step both candidates
 are tried on copies of the simulator (and of the mentor or physics policy): the candidate's action, then
 its own driver for the rest of ``--hold`` steps (a takeover lasts at least 10), then IDM-MOBIL that sees
-obstacles (0.98 success on the test scenes) for the rest of ``--horizon`` steps. A candidate *fails* when its copy crashes or leaves the road
-within the horizon. On the *decisive* states (exactly one candidate fails) the selector is right when it
+obstacles (0.98 success on the test scenes) for the rest of ``--horizon`` steps. A candidate *fails* when
+its copy crashes or leaves the road within the horizon. On the *decisive* states (exactly one candidate fails) the selector is right when it
 picks the other one; reported per ``--epsilons`` value, with "always the mentor" and "always physics" as
 references, plus the advantage ``mean_k Q_k(s, a_mentor) - Q_k(s, a_phy)`` on the decisive states split by
 which candidate was the safe one (a useful ensemble puts them apart).
@@ -144,6 +144,8 @@ def main(argv=None):
     parser.add_argument("--every", type=int, default=10, help="label every k-th takeover state (1: all of them)")
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
+    if args.every < 1:
+        parser.error(f"--every {args.every}: must be at least 1 (1 labels every takeover state)")
     torch.set_num_threads(1)
     results = []
     for run in args.runs:

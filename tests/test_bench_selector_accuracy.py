@@ -35,3 +35,9 @@ def test_haco_run_is_refused(tmp_path):
     bench = load_script("benchmarks/selector_accuracy.py")
     with pytest.raises(SystemExit, match="no ensemble"):
         bench.main([str(run), "--max-states", "1"])
+
+
+def test_every_below_one_is_refused(capsys):
+    with pytest.raises(SystemExit):
+        load_script("benchmarks/selector_accuracy.py").main(["no-such-run", "--every", "0"])
+    assert "--every 0: must be at least 1" in capsys.readouterr().err
