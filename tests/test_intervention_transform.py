@@ -193,6 +193,45 @@ def test_warmup_mentor_drives_every_step_then_normal():
     assert (td["next", "behavior_action"][20:] == proposal).all()
 
 
+class _RecordingDriver:
+    """A warm-up driver: brakes gently straight ahead, and records the observations it was given."""
+
+    def __init__(self):
+        self.observations, self.resets = [], 0
+
+    def reset(self):
+        self.resets += 1
+
+    def __call__(self, obs, env):
+        assert env is unwrap(env)  # the simulator itself, as the mentor gets it
+        self.observations.append(np.asarray(obs).copy())
+        return np.array([0.0, -0.2], dtype=np.float32)
+
+
+def test_warmup_driver_drives_the_warmup_instead_of_the_mentor():
+    driver = _RecordingDriver()
+    env = _env(warmup_steps=20, warmup_driver=driver)
+    proposal = torch.tensor([0.0, 0.3])
+    td = _rollout(env, _fixed_agent(proposal), 30)
+    expert = torch.tensor([0.0, -0.2])
+    assert (td["next", "behavior_action"][:20] == expert).all()  # the expert drove, not the mentor
+    assert not torch.equal(td["next", "behavior_action"][:20], td["next", "mentor_action"][:20])
+    assert _flags(td, "intervention")[:20].all()  # forced control, as in the mentor's warm-up
+    assert not _flags(td, "mentor_selected")[:20].any()  # ... but the mentor's action never ran
+    assert len(driver.observations) == 20 and driver.resets == 1  # not asked after the warm-up
+    np.testing.assert_array_equal(np.stack(driver.observations), td["observation"][:20].numpy())
+    after = td["next", "behavior_action"][20:]
+    assert (after == proposal).logical_or(_flags(td, "intervention")[20:, None]).all()
+
+
+def test_warmup_driver_bad_output_is_an_error_naming_it():
+    env = _env(warmup_steps=5, warmup_driver=lambda obs, env: np.array([np.nan, 0.0]))
+    with pytest.raises(ValueError, match="warmup_driver returned"):
+        _rollout(env, _fixed_agent(torch.tensor([0.0, 0.3])), 3)
+    with pytest.raises(TypeError, match="warmup_driver"):
+        InterventionTransform(DriverMentor(), warmup_steps=5, warmup_driver="sac")
+
+
 def test_episode_end_does_not_leak_takeover_state():
     mentor = DriverMentor()
     env = _env(mentor, config={"horizon": 10})

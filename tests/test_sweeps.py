@@ -72,8 +72,8 @@ def test_named_sweep_configs_load_and_validate():
         cells = expand(spec)
         check_cell_configs(cells)
         counts[spec.name] = len(cells)
-    assert counts == {"epsilon_sensitivity": 6 * 2 * 3 + 3, "loss_ablations": 15, "lower_bound": 2 * 2 * 3 + 3,
-                      "mentor_proficiency": 12, "physics_ablation": 9 + 3, "warmup": 15}
+    assert counts == {"epsilon_sensitivity": 6 * 2 * 3 + 3, "loss_ablations": 15, "lower_bound": 4 * 2 * 3 + 3,
+                      "mentor_proficiency": 12, "physics_ablation": 9 + 3, "warmup": 2 * 15}
 
 
 # -- errors --------------------------------------------------------------------------------------
@@ -262,7 +262,8 @@ def test_two_cell_sweep_on_local_ray(tmp_path):
     spec = parse_sweep({"name": "smoke", "base": [*TINY, "collector.total_frames=100"], "seeds": [0],
                         "methods": ["pe-rlhf", "haco"],
                         "metrics": ["success_rate", "train_safety_violations", "value_takeover_rate"]})
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    ray.init(address="local", num_cpus=2,  # a fresh instance, even beside a running `ray start`
+             include_dashboard=False, log_to_driver=False)
     try:
         report = run_sweep(spec, tmp_path, progress=False)
         assert report.failed == {} and sorted(report.finished) == ["haco__s0", "pe-rlhf__s0"]

@@ -80,12 +80,12 @@ def run_evaluate(args: argparse.Namespace, parser: argparse.ArgumentParser) -> i
         config = parse_config_overrides(args.config_override)
         if args.checkpoint:
             from pe_rlhf.evaluation import TorchRLPolicyAdapter
-            from pe_rlhf.training.trained_policy import load_actor, run_world
+            from pe_rlhf.training.trained_policy import load_run_actor, run_world
 
             # the run's own world (observation size, traffic, ...), then the command line's overrides
             world = dataclasses.replace(run_world(args.checkpoint), split=args.split)
             config = parse_config_overrides(args.config_override, world)
-            policy, name = TorchRLPolicyAdapter(load_actor(args.checkpoint)), f"agent:{args.checkpoint}"
+            policy, name = TorchRLPolicyAdapter(load_run_actor(args.checkpoint)), f"agent:{args.checkpoint}"
         else:
             policy, name = make_policy(args.policy, args.seed), args.policy
     except (ValueError, FileNotFoundError) as e:
@@ -103,8 +103,8 @@ def add_evaluate_parser(subparsers: argparse._SubParsersAction) -> argparse.Argu
                               description="Evaluate a registered policy, one episode per scene seed.")
     p.add_argument("--policy", default="idm-mobil", help="registered policy name (idm-mobil, idm-mobil-oracle, "
                    "random, ...)")
-    p.add_argument("--checkpoint", metavar="RUN_DIR", help="evaluate the agent trained in this run folder "
-                   "(its actor.pt, or its newest checkpoint); replaces --policy")
+    p.add_argument("--checkpoint", metavar="RUN_DIR", help="evaluate the agent trained in this run folder, "
+                   "PE-RLHF/HACO/HAIM-DRL or baseline (its actor.pt, or its newest checkpoint); replaces --policy")
     p.add_argument("--split", default="test", choices=("train", "test"), help="scene split (default: test)")
     p.add_argument("--seeds", help="scene seeds 'A-B' or 'a,b,c'; replaces --split")
     p.add_argument("--episodes", type=int, help="evaluate the first N seeds (default: all)")

@@ -65,6 +65,30 @@ def obs_dim(cfg) -> int:
     return observation_size(world.lidar_beams, world.lane_features)
 
 
+def build_warmup_driver(cfg):
+    """Who drives the warm-up instead of the mentor (``collector.warmup_policy``): None (the mentor: the
+    demonstration warm-up), or a :class:`~pe_rlhf.evaluation.TorchRLPolicyAdapter` over the trained actor of
+    that run folder, PE-RLHF/HACO or baseline (the expert-policy warm-up). Raises ``ConfigError`` naming the
+    field when the folder holds no finished run or its actor reads another observation width."""
+    path = cfg.collector.warmup_policy
+    if path is None:
+        return None
+    from pe_rlhf.evaluation import TorchRLPolicyAdapter
+    from pe_rlhf.training.config import ConfigError
+    from pe_rlhf.training.trained_policy import load_run_actor, run_observation_size
+
+    field = "collector.warmup_policy"
+    try:
+        width = run_observation_size(path)
+        actor = load_run_actor(path)
+    except (FileNotFoundError, ValueError) as e:
+        raise ConfigError(f"{field}={path!r}: {e}", field) from None
+    if width != obs_dim(cfg):
+        raise ConfigError(f"{field}={path!r}: its actor reads {width}-float observations, this run's env gives "
+                          f"{obs_dim(cfg)} (env.lane_features / env.lidar_beams differ)", field)
+    return TorchRLPolicyAdapter(actor)
+
+
 def build_mentor(cfg, worker_index: int = 0) -> Mentor:
     """A mentor by preset name (seeded ``mentor.seed + worker_index``), or a user's class given as
     ``package.module:Name``."""
@@ -110,7 +134,7 @@ def build_train_env(cfg, env_config, mentor: Mentor, ensemble: QEnsemble | None,
                                         cfg.selector.variance_threshold)
     warmup_steps = math.ceil(int(cfg.collector.warmup_steps) / num_workers)
     env.append_transform(InterventionTransform(mentor, selector, physics if selector else None,
-                                               warmup_steps=warmup_steps))
+                                               warmup_steps=warmup_steps, warmup_driver=build_warmup_driver(cfg)))
     if cfg.disturbance.enabled:
         d = cfg.disturbance
         env.append_transform(TrafficDisturbanceCost(float(d.threshold), float(d.horizon), float(d.follower_range)))

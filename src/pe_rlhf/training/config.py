@@ -48,7 +48,7 @@ DEFAULTS: dict[str, Any] = {
                  "refresh_data": "warmup",
                  "fit_loss": "mean", "target_noise": 0.1, "tau": 0.005, "lr": 3.0e-4, "batch_size": 256},
     "collector": {"total_frames": 30000, "frames_per_batch": 100, "warmup_steps": 10000,
-                  "warmup_gap": True, "learning_starts": 100, "exploration": "random", "backend": "single", "num_workers": 1,
+                  "warmup_policy": None, "warmup_gap": True, "learning_starts": 100, "exploration": "random", "backend": "single", "num_workers": 1,
                   "realtime_hz": 0},
     "replay_buffer": {"size": 100000, "batch_size": 1024},
     "optim": {"lr": 1.0e-4, "updates_per_batch": 100, "max_grad_norm": 10.0, "async_updates": False,
@@ -349,7 +349,7 @@ RULES: dict[str, Rule] = {
     "selector.target_noise": _number(0), "selector.tau": _number(0, 1, lo_open=True), "selector.lr": _number(0, lo_open=True),
     "selector.batch_size": _int(1),
     "collector.total_frames": _int(1), "collector.frames_per_batch": _int(1),
-    "collector.warmup_steps": _int(0), "collector.warmup_gap": _bool, "collector.exploration": _choice("random", "deterministic"), "collector.learning_starts": _int(0),
+    "collector.warmup_steps": _int(0), "collector.warmup_policy": _optional(_string), "collector.warmup_gap": _bool, "collector.exploration": _choice("random", "deterministic"), "collector.learning_starts": _int(0),
     "collector.backend": _backend, "collector.num_workers": _int(1), "collector.realtime_hz": _number(0),
     "replay_buffer.size": _int(1), "replay_buffer.batch_size": _int(1),
     "optim.lr": _number(0, lo_open=True), "optim.updates_per_batch": _int(1),
@@ -421,6 +421,9 @@ def _check_relations(cfg: DictConfig) -> None:
             if value:
                 raise _fail(field, value, f"needs collector.backend=single (got {c.backend}): the pacing and the "
                             "background learner drive one env in this process; use 0 / false")
+    if c.warmup_policy is not None and c.warmup_steps < 1:
+        raise _fail("collector.warmup_policy", c.warmup_policy,
+                    "drives the warm-up, but collector.warmup_steps is 0: give the warm-up steps, or null")
     method_name(cfg)  # physics/selector combination
     if cfg.selector.enabled:
         for field in ("collector.warmup_steps", "selector.warmup_fit_steps"):

@@ -1,4 +1,10 @@
-"""Load a trained agent from a run folder (for ``pe-rlhf evaluate --checkpoint DIR``)."""
+"""Load a trained agent from a run folder (for ``pe-rlhf evaluate --checkpoint DIR`` and the expert-policy
+warm-up, ``collector.warmup_policy``).
+
+A run folder is a PE-RLHF/HACO/HAIM-DRL run (``config.yaml`` of the recipe config) or a baseline run
+(``config.yaml`` with a top-level ``method``, e.g. ``sac_rs``); :func:`run_world` and :func:`load_run_actor`
+read both kinds.
+"""
 
 from __future__ import annotations
 
@@ -9,15 +15,51 @@ import torch
 from pe_rlhf.training import builders
 
 
-def run_world(run_dir: str | Path):
-    """The :class:`~pe_rlhf.envs.config.DrivingConfig` the run in ``run_dir`` trained in (its ``env`` group):
-    its agent must be evaluated with the same observation (``lane_features``, ``lidar_beams``)."""
-    from pe_rlhf.training.config import driving_config, load_config
+def _is_baseline_run(run_dir: Path) -> bool:
+    from omegaconf import OmegaConf
 
-    run_dir = Path(run_dir)
     if not (run_dir / "config.yaml").exists():
         raise FileNotFoundError(f"{run_dir} is not a training run folder (no config.yaml)")
-    return driving_config(load_config(run_dir / "config.yaml", apply_profile=False))
+    return OmegaConf.load(run_dir / "config.yaml").get("method") is not None
+
+
+def _run_config(run_dir: Path):
+    if _is_baseline_run(run_dir):
+        from omegaconf import OmegaConf
+
+        from pe_rlhf.baselines.config import load_baseline_config
+
+        method = str(OmegaConf.load(run_dir / "config.yaml").get("method"))
+        return load_baseline_config(method, run_dir / "config.yaml", apply_profile=False)
+    from pe_rlhf.training.config import load_config
+
+    return load_config(run_dir / "config.yaml", apply_profile=False)
+
+
+def run_world(run_dir: str | Path):
+    """The :class:`~pe_rlhf.envs.config.DrivingConfig` the run in ``run_dir`` (either kind) trained in (its
+    ``env`` group): its agent must be evaluated with the same observation (``lane_features``, ``lidar_beams``)."""
+    from pe_rlhf.training.config import driving_config
+
+    return driving_config(_run_config(Path(run_dir)))
+
+
+def run_observation_size(run_dir: str | Path) -> int:
+    """The observation width the actor of the run in ``run_dir`` (either kind) reads."""
+    return builders.obs_dim(_run_config(Path(run_dir)))
+
+
+def load_run_actor(run_dir: str | Path):
+    """The trained actor of a run folder of either kind: :func:`load_actor` for a PE-RLHF/HACO/HAIM-DRL
+    run, :func:`pe_rlhf.baselines.load_baseline_actor` (its ``actor.pt``) for a baseline run."""
+    run_dir = Path(run_dir)
+    if _is_baseline_run(run_dir):
+        from pe_rlhf.baselines import load_baseline_actor
+
+        if not (run_dir / "actor.pt").exists():
+            raise FileNotFoundError(f"{run_dir}: the baseline run has no actor.pt (it has not finished)")
+        return load_baseline_actor(run_dir)
+    return load_actor(run_dir)
 
 
 def load_actor(run_dir: str | Path):

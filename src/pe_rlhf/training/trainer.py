@@ -2,9 +2,10 @@
 
 Phases, top to bottom in :func:`train`:
 
-1. warm-up: the mentor drives ``collector.warmup_steps`` steps (the transform forces it); the
-   transitions, with the env reward, fill a warm-up buffer and, relabelled (the mentor's action
-   stands as the agent's), the replay buffer;
+1. warm-up: the mentor (or, with ``collector.warmup_policy``, the trained actor of an earlier run: the
+   expert-policy warm-up) drives ``collector.warmup_steps`` steps (the transform forces it); the
+   transitions, with the env reward, fill a warm-up buffer and, relabelled
+   (:func:`~pe_rlhf.training.steps.relabel_warmup`), the replay buffer;
 2. the Q-ensemble is fitted on the warm-up data (then frozen, or refreshed on a schedule);
 3. online: the collector runs the actor inside ``InterventionTransform`` (mentor + physics +
    selector); ``optim.updates_per_batch`` PERLHFLoss updates follow every batch once

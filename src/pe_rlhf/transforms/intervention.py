@@ -16,7 +16,8 @@ Writes under ``next`` (step outputs, float32 / bool with a trailing dim of 1 for
 ``intervention_cost`` (1,)   ``1 - cos(a_AV, a_exec)`` at a start, else 0 (1 if a norm is ~0)
 ``mentor_action`` (A,)       the mentor's proposal (always present)
 ``physics_action`` (A,)      the physics proposal during a PE-RLHF takeover, else zeros (also in warm-up)
-``mentor_selected`` (1,)     the mentor's action was executed in a takeover (always in HACO and warm-up)
+``mentor_selected`` (1,)     the mentor's action was executed in a takeover (always in HACO and in a
+                             mentor-driven warm-up; never in a warm-up driven by ``warmup_driver``)
 ===========================  =========================================================
 
 A non-finite agent proposal (a diverged actor) is never executed: its NaN/inf entries become 0 (straight,
@@ -64,16 +65,25 @@ class InterventionTransform(Transform):
         physics: a callable ``physics(env) -> action`` (e.g. ``IDMMobilPolicy()``), required with a selector.
         warmup_steps: for the first ``warmup_steps`` steps the mentor always drives and the selector is
             bypassed (the warm-up data that trains the Q-ensemble).
+        warmup_driver: a policy ``driver(observation, env) -> action`` (observation float32 numpy ``(O,)``,
+            action ``(A,)``; e.g. :class:`~pe_rlhf.evaluation.TorchRLPolicyAdapter` over a trained actor) that
+            drives the warm-up instead of the mentor: the paper's *expert-policy warm-up*. The mentor is
+            still asked every warm-up step (its proposal is written as ``mentor_action``); ``None``: the
+            mentor drives (the *demonstration warm-up*).
     """
 
-    def __init__(self, mentor, selector=None, physics=None, warmup_steps: int = 0):
+    def __init__(self, mentor, selector=None, physics=None, warmup_steps: int = 0, warmup_driver=None):
         super().__init__(in_keys=[], out_keys=list(OUT_KEYS))
         if (selector is None) != (physics is None):
             raise ValueError("InterventionTransform needs both selector and physics (PE-RLHF) or neither (HACO)")
         if warmup_steps < 0:
             raise ValueError(f"warmup_steps={warmup_steps} must be >= 0")
         self.mentor, self.selector, self.physics = mentor, selector, physics
+        if warmup_driver is not None and not callable(warmup_driver):
+            raise TypeError(f"warmup_driver must be a policy driver(observation, env) -> action, got "
+                            f"{type(warmup_driver).__name__}")
         self.warmup_steps = int(warmup_steps)
+        self.warmup_driver = warmup_driver
         self.total_steps = 0
         self._in_takeover = False
         self._pending: dict | None = None
@@ -90,6 +100,8 @@ class InterventionTransform(Transform):
         self._in_takeover = False
         self._pending = None
         self.mentor.reset(self.driving_env)
+        if hasattr(self.warmup_driver, "reset"):
+            self.warmup_driver.reset()
         # Defaults at reset, so reset and step outputs stack in a rollout.
         for key, spec in self.transform_observation_spec(Composite()).items():
             tensordict_reset.set(key, spec.zero())
@@ -103,7 +115,10 @@ class InterventionTransform(Transform):
         physics_action = np.zeros_like(mentor_action)
         mentor_selected = bool(takeover)
         executed = agent_action
-        if warmup:
+        if warmup and self.warmup_driver is not None:
+            executed = self._driver_action(observation, env, mentor_action.shape)
+            takeover, mentor_selected = True, False
+        elif warmup:
             takeover, executed, mentor_selected = True, mentor_action, True
         elif takeover:
             executed = mentor_action
@@ -125,6 +140,14 @@ class InterventionTransform(Transform):
             "physics_action": physics_action,
             "mentor_selected": mentor_selected and bool(takeover),
         }
+
+    def _driver_action(self, observation: torch.Tensor, env, shape: tuple[int, ...]) -> np.ndarray:
+        obs = observation.detach().cpu().numpy().astype(np.float32)
+        action = np.asarray(self.warmup_driver(obs, env), dtype=np.float32)
+        if action.shape != shape or not np.isfinite(action).all():
+            raise ValueError(f"warmup_driver returned {action.tolist()} (shape {action.shape}); expected a finite "
+                             f"action of shape {shape}")
+        return action
 
     def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase:
         agent_action = tensordict.get("action")
