@@ -234,6 +234,29 @@ def test_summary_aggregates_seeds_exactly(tmp_path):
     assert all(paths[k].stat().st_size > 0 for k in ("summary", "value_takeover_rate", "takeover_rate"))
 
 
+@pytest.mark.parametrize("axis, joined", [({"parameters": {"selector.epsilon_select": [0.5, 1.0]}}, True),
+                                          ({"variants": {"idm_only": [], "mobil_only": []}}, False)])
+def test_summary_plot_joins_points_only_along_a_numeric_axis(tmp_path, axis, joined):
+    from pe_rlhf.sweeps.plots import _numeric_x, _panel, _pyplot
+
+    plt = _pyplot()
+
+    cells = expand(_spec(**{"methods": ["pe-rlhf"], "mentors": ["professional"], "seeds": [0], "parameters": None,
+                            **axis}))
+    for cell, success in zip(cells, (0.2, 0.4)):
+        _fake_cell(tmp_path, cell, success)
+    table = aggregate(cell_rows(tmp_path, cells), ["success_rate"])
+    numeric = _numeric_x(cells)
+    assert (numeric is not None) == joined  # epsilon: a number line; named variants: categories
+    positions = numeric or {c.parameter: float(i) for i, c in enumerate(cells)}
+    fig, ax = plt.subplots()
+    _panel(ax, table, "success_rate", positions, connect=numeric is not None)
+    line = ax.lines[0]
+    assert list(line.get_ydata()) == pytest.approx([0.2, 0.4])
+    assert (line.get_linestyle() == "-") == joined and (line.get_linestyle() == "None") == (not joined)
+    plt.close(fig)
+
+
 def test_windowed_value_takeover_rate_counts_only_online_batches_in_the_window():
     from pe_rlhf.sweeps.plots import windowed_value_takeover_rate
 

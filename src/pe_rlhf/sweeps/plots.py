@@ -83,7 +83,9 @@ def _series_label(row: dict[str, Any]) -> str:
     return row["method"] if row["mentor"] == NONE else f"{row['method']} ({row['mentor']})"
 
 
-def _panel(ax, table: list[dict], metric: str, positions: dict[str, float]) -> None:
+def _panel(ax, table: list[dict], metric: str, positions: dict[str, float], connect: bool = True) -> None:
+    """One metric: a series per method (and mentor) against the parameter; ``connect=False`` (named variants,
+    an axis without order) draws the points without joining lines."""
     series: dict[str, list[dict]] = {}
     for row in table:
         series.setdefault(_series_label(row), []).append(row)
@@ -93,7 +95,7 @@ def _panel(ax, table: list[dict], metric: str, positions: dict[str, float]) -> N
                          if r["parameter"] in positions and r[metric]["n"]), key=lambda point: point[0])
         if points:
             ax.errorbar([p for p, _ in points], [s["mean"] for _, s in points], yerr=[s["std"] for _, s in points],
-                        marker="o", capsize=3, label=label, color=color)
+                        marker="o", capsize=3, label=label, color=color, linestyle="-" if connect else "none")
         for r in rows:
             if r["parameter"] == NONE and r[metric]["n"]:
                 ax.axhline(r[metric]["mean"], linestyle="--", linewidth=1, label=label, color=color)
@@ -121,7 +123,7 @@ def plot_summary(path: Path, cells: Sequence[Cell], table: list[dict], metrics: 
     positions = numeric or {label: float(i) for i, label in enumerate(labels)}
     for ax, metric in zip(axes.flat, metrics):
         if labels:
-            _panel(ax, table, metric, positions)
+            _panel(ax, table, metric, positions, connect=numeric is not None)
             if numeric is None:
                 ax.set_xticks(range(len(labels)), labels, rotation=30, ha="right", fontsize=7)
             else:
