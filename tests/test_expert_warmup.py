@@ -91,5 +91,5 @@ def test_evaluate_reads_a_baseline_run_folder(sac_run, tmp_path):
 
     assert cli(["evaluate", "--checkpoint", str(sac_run), "--seeds", "1000", "--no-progress",
                 "--config-override", "horizon=50", "--json", str(tmp_path / "e.json")]) == 0
-    summary = json.load(open(tmp_path / "e.json"))
+    summary = json.loads((tmp_path / "e.json").read_text())
     assert summary["episodes"] == 1 and summary["policy"] == f"agent:{sac_run}"

@@ -27,7 +27,8 @@ def ensemble_transitions(batch: TensorDictBase) -> TensorDictBase:
 
 def relabel_warmup(batch: TensorDictBase, keep_agent_action: bool = True) -> TensorDictBase:
     """Warm-up transitions as the loss should see them. The mentor (or the warm-up policy) drove every
-    step, so nothing is charged: ``intervention_start`` and ``intervention_cost`` are zeroed (forced driving is no takeover).
+    step, so nothing is charged: ``intervention_start`` and ``intervention_cost`` are zeroed (forced
+    driving is no takeover).
 
     ``keep_agent_action=True`` (the recipe's default, ``collector.warmup_gap``): the agent's
     proposals stay as ``action`` and every step stays flagged ``intervention``, so the CQL-style gap

@@ -63,8 +63,8 @@ class InterventionTransform(Transform):
         mentor: any :class:`~pe_rlhf.mentors.base.Mentor`.
         selector: a :class:`~pe_rlhf.transforms.selector.HybridActionSelector` (PE-RLHF) or None (HACO).
         physics: a callable ``physics(env) -> action`` (e.g. ``IDMMobilPolicy()``), required with a selector.
-        warmup_steps: for the first ``warmup_steps`` steps the mentor always drives and the selector is
-            bypassed (the warm-up data that trains the Q-ensemble).
+        warmup_steps: for the first ``warmup_steps`` steps the mentor (or ``warmup_driver``) always drives
+            and the selector is bypassed (the warm-up data that trains the Q-ensemble).
         warmup_driver: a policy ``driver(observation, env) -> action`` (observation float32 numpy ``(O,)``,
             action ``(A,)``; e.g. :class:`~pe_rlhf.evaluation.TorchRLPolicyAdapter` over a trained actor) that
             drives the warm-up instead of the mentor: the paper's *expert-policy warm-up*. The mentor is
