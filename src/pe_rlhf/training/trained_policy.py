@@ -15,21 +15,22 @@ import torch
 from pe_rlhf.training import builders
 
 
-def _is_baseline_run(run_dir: Path) -> bool:
+def _baseline_method(run_dir: Path) -> str | None:
+    """The baseline method (``sac_rs``, ...) a run folder's ``config.yaml`` names, or None for a
+    PE-RLHF/HACO/HAIM-DRL run."""
     from omegaconf import OmegaConf
 
     if not (run_dir / "config.yaml").exists():
         raise FileNotFoundError(f"{run_dir} is not a training run folder (no config.yaml)")
-    return OmegaConf.load(run_dir / "config.yaml").get("method") is not None
+    method = OmegaConf.load(run_dir / "config.yaml").get("method")
+    return None if method is None else str(method)
 
 
 def _run_config(run_dir: Path):
-    if _is_baseline_run(run_dir):
-        from omegaconf import OmegaConf
-
+    method = _baseline_method(run_dir)
+    if method is not None:
         from pe_rlhf.baselines.config import load_baseline_config
 
-        method = str(OmegaConf.load(run_dir / "config.yaml").get("method"))
         return load_baseline_config(method, run_dir / "config.yaml", apply_profile=False)
     from pe_rlhf.training.config import load_config
 
@@ -53,7 +54,7 @@ def load_run_actor(run_dir: str | Path):
     """The trained actor of a run folder of either kind: :func:`load_actor` for a PE-RLHF/HACO/HAIM-DRL
     run, :func:`pe_rlhf.baselines.load_baseline_actor` (its ``actor.pt``) for a baseline run."""
     run_dir = Path(run_dir)
-    if _is_baseline_run(run_dir):
+    if _baseline_method(run_dir) is not None:
         from pe_rlhf.baselines import load_baseline_actor
 
         if not (run_dir / "actor.pt").exists():
