@@ -314,7 +314,7 @@ def test_td_target_subtracts_the_entropy_of_the_next_action():
     with set_exploration_type(ExplorationType.RANDOM), loss.actor_network_params.to_module(loss.actor_network):
         for _ in range(2):
             dist = loss.actor_network.get_dist(TensorDict({"observation": batch["observation"]}, [BATCH]))
-            log_prob = dist.log_prob(dist.rsample())
+            _, log_prob = dist.rsample_and_log_prob()
             draws.append((log_prob.sum(-1) if log_prob.shape == (BATCH, ACTION_DIM) else log_prob).detach())
     out = run(loss, batch, seed=11)
 
@@ -325,6 +325,48 @@ def test_td_target_subtracts_the_entropy_of_the_next_action():
     matches = [(td(draws[i]), -draws[1 - i].mean().item()) for i in range(2)]
     assert any(out["td_loss"].item() == pytest.approx(t, rel=1e-5) and out["entropy"].item() == pytest.approx(h, rel=1e-5)
                for t, h in matches), (out["td_loss"], out["entropy"], matches)
+
+
+class FixedGaussian(nn.Module):
+    """``loc = m``, ``scale = s`` for every state (two scalar parameters): a saturated actor when ``m`` is large."""
+
+    def __init__(self, loc: float, scale: float):
+        super().__init__()
+        self.loc = nn.Parameter(torch.tensor(float(loc)))
+        self.scale = nn.Parameter(torch.tensor(float(scale)))
+
+    def forward(self, observation: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        shape = (*observation.shape[:-1], ACTION_DIM)
+        return self.loc.expand(shape), self.scale.expand(shape)
+
+
+def saturated_loss(loc: float = 10.0, scale: float = 1.0) -> PERLHFLoss:
+    from torchrl.data import Bounded
+    from torchrl.modules import ProbabilisticActor, TanhNormal
+
+    module = TensorDictModule(FixedGaussian(loc, scale), in_keys=["observation"], out_keys=["loc", "scale"])
+    actor = ProbabilisticActor(module, in_keys=["loc", "scale"], spec=Bounded(-1.0, 1.0, (ACTION_DIM,)),
+                               distribution_class=TanhNormal, distribution_kwargs={"low": -1.0, "high": 1.0})
+    return PERLHFLoss(actor, critic(ConstantQ(0.0)), critic(ConstantQ(0.0)), alpha_init=1.0, fixed_alpha=True,
+                      action_dim=ACTION_DIM)
+
+
+def test_a_saturated_actor_is_scored_at_its_own_pre_tanh_draw():
+    """Pre-tanh mean 10, scale 1: every action rounds to 1 - 1e-6, and inverting it would score each draw
+    as if it were ~7.25. The entropy must be the TanhNormal's own, computed in float64 from its closed form
+    ``H = 0.5 log(2 pi e s^2) + E[log(1 - tanh(u)^2)]`` per dimension (u ~ N(10, 1)), and the actor's
+    gradient must widen the scale (more entropy lowers ``alpha * log pi``)."""
+    loss = saturated_loss(10.0, 1.0)
+    out = run(loss, make_batch(batch=4096))
+    u = 10.0 + torch.randn(1_000_000, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    log_one_minus_tanh2 = 2 * (math.log(2.0) - u - torch.nn.functional.softplus(-2 * u))
+    expected = ACTION_DIM * (0.5 * math.log(2 * math.pi * math.e) + log_one_minus_tanh2.mean().item())
+    assert expected < -30  # ~ -17.2 per dimension
+    assert out["entropy"].item() == pytest.approx(expected, abs=0.5)
+    assert out["loss_actor"].item() == pytest.approx(-expected, abs=0.5)  # alpha = 1, constant critics at 0
+    out["loss_actor"].backward()
+    scale_grad = loss.actor_network_params.get(("module", "0", "module", "scale")).grad
+    assert scale_grad is not None and scale_grad.item() < 0
 
 
 @pytest.mark.parametrize("psi, beta", [(1.0, 1.0), (0.5, 0.0), (2.0, 3.0)])

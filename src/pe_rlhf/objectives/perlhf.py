@@ -45,14 +45,21 @@ from tensordict.nn import ProbabilisticTensorDictSequential, TensorDictModule
 from tensordict.utils import NestedKey
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.objectives.common import LossModule
+from torchrl.objectives.sac import compute_rsample_log_prob
 from torchrl.objectives.utils import _vmap_func
 
 INTERVENTION_CRITIC_ACTIONS = ("agent", "behavior")
 
 
 def _rsample_log_prob(dist) -> tuple[torch.Tensor, torch.Tensor]:
-    action = dist.rsample()
-    log_prob = dist.log_prob(action)
+    """A reparameterised draw and the log-probability of that very draw.
+
+    TorchRL's ``rsample_and_log_prob`` scores the pre-tanh value that made the action. Scoring the
+    action afterwards (``log_prob(rsample())``) inverts the tanh of a value clamped at ``1 - 1e-6``:
+    past a pre-tanh value of ~7.25 every draw is scored as 7.25, which halves the entropy of a
+    saturated actor and flips the sign of the gradient on its scale (tests/test_perlhf_loss.py).
+    """
+    action, log_prob = compute_rsample_log_prob(dist)
     if log_prob.shape != action.shape[:-1]:  # per-dimension log-probs: sum them
         log_prob = log_prob.sum(-1)
     return action, log_prob
