@@ -28,7 +28,7 @@ OBS_DIM, ACTION_DIM, BATCH = 4, 2, 32
 HIDDEN = (16, 16)
 LOSS_KEYS = ("loss_qvalue", "loss_intervention_qvalue", "loss_actor", "loss_alpha")
 DIAGNOSTIC_KEYS = ("alpha", "entropy", "td_loss", "gap_loss", "q_behavior", "q_agent", "q_intervention",
-                   "intervention_rate")
+                   "intervention_rate", "failure_rate", "q_failure")
 PARAM_GROUPS = ("actor_network_params", "qvalue_network_params", "intervention_qvalue_network_params",
                 "log_alpha")
 
@@ -614,7 +614,7 @@ def test_without_a_disturbance_critic_the_outputs_are_the_previous_numbers(case)
     # the key is ignored when there is no disturbance critic
     for batch in (make_batch(terminated=0.25), with_disturbance(make_batch(terminated=0.25))):
         out = run(loss, batch)
-        assert set(out.keys()) == set(previous)
+        assert set(out.keys()) - set(previous) == {"failure_rate", "q_failure"}  # diagnostics added since
         for key, value in previous.items():
             assert out[key].item() == pytest.approx(value, rel=1e-6, abs=1e-7), key
 
@@ -765,3 +765,95 @@ def test_actor_moves_away_from_actions_the_disturbance_critic_charges(one_thread
     assert 0.3 < before < 0.7, before
     assert charged < 0.1, (before, charged)
     assert free > 0.3, free
+
+
+# --------------------------------------------------------------------------- failure terminations
+
+
+def with_outcomes(batch: TensorDict, outcome: list[str]) -> TensorDict:
+    """``outcome`` per row: ``"go"`` (not terminal), ``"success"`` or ``"failure"`` (terminal without success)."""
+    terminated = torch.tensor([o != "go" for o in outcome]).unsqueeze(-1)
+    batch["next", "terminated"] = terminated
+    batch["next", "done"] = terminated.clone()
+    batch["next", "success"] = torch.tensor([o == "success" for o in outcome]).unsqueeze(-1)
+    return batch
+
+
+@pytest.mark.parametrize("failure_target, failure_y", [("zero", 0.0), ("bootstrap", -4.5), ("batch_min", -4.5)])
+def test_failure_rows_take_the_chosen_target_and_successes_stay_terminal(failure_target, failure_y):
+    outcome = ["go", "success", "failure", "go"] * (BATCH // 4)
+    batch = with_outcomes(make_batch(intervention=0.0), outcome)
+    gamma = 0.9  # alpha ~ 0: a non-terminal row's target is gamma * (-5) = -4.5
+    loss = make_loss(critic(ConstantQ(-5.0)), critic(ConstantQ(0.0)), gamma=gamma, alpha_init=1e-9,
+                     fixed_alpha=True, failure_target=failure_target)
+    set_online(loss.qvalue_network_params, "value", [1.0, -3.0])
+    out = run(loss, batch)
+    y = torch.tensor([{"go": -4.5, "success": 0.0, "failure": failure_y}[o] for o in outcome])
+    expected = 0.5 * sum(((c - y) ** 2).mean() for c in (1.0, -3.0))
+    assert out["td_loss"].item() == pytest.approx(expected.item(), rel=1e-5)
+    assert out["failure_rate"].item() == pytest.approx(0.25)
+    assert out["q_failure"].item() == pytest.approx(-1.0)  # mean over the copies (1, -3) at failure rows
+
+
+def test_without_a_success_key_every_terminal_row_is_a_failure():
+    batch = make_batch(terminated=(torch.arange(BATCH) % 2 == 0).unsqueeze(-1))
+    assert ("next", "success") not in batch.keys(True)
+    out = run(make_loss(), batch)
+    assert out["failure_rate"].item() == pytest.approx(0.5)
+
+
+def test_the_zero_failure_target_is_the_previous_loss():
+    batch = with_outcomes(make_batch(), ["go", "success", "failure", "go"] * (BATCH // 4))
+    a, b = run(make_loss(), batch), run(make_loss(failure_target="zero"), batch)
+    for key in LOSS_KEYS:
+        assert torch.equal(a[key], b[key]), key
+
+
+def test_invalid_failure_target_names_the_field():
+    with pytest.raises(ValueError, match="failure_target"):
+        make_loss(failure_target="pessimistic")
+
+
+def test_a_crash_is_worth_more_than_driving_on_unless_failures_are_pinned_low(one_thread):
+    """A tiny chain without reward. From s0 action (+1, .) crashes (terminal failure) and (-1, .) drives on
+    to s1, which drives on for ever. The actor is a narrow fixed Gaussian (log pi > 0), so driving on is
+    worth ``-alpha * E[log pi] * gamma / (1 - gamma) < 0``. With the terminal target 0 the critic ranks the
+    crash above driving on; with ``batch_min`` the crash is worth no more than driving on."""
+    obs_dim, gamma, alpha = 3, 0.8, 0.5  # driving on: -0.8 * 0.5 * 1.78 / 0.2 = -3.6
+    s0, s1, crashed = torch.eye(obs_dim)
+    crash, drive = torch.tensor([1.0, 0.0]), torch.tensor([-1.0, 0.0])
+
+    def fitted(failure_target: str) -> tuple[float, float]:
+        torch.manual_seed(0)
+        module = TensorDictModule(FixedGaussian(0.0, 0.1), in_keys=["observation"], out_keys=["loc", "scale"])
+        from torchrl.data import Bounded
+        from torchrl.modules import ProbabilisticActor, TanhNormal
+
+        actor = ProbabilisticActor(module, in_keys=["loc", "scale"], spec=Bounded(-1.0, 1.0, (ACTION_DIM,)),
+                                   distribution_class=TanhNormal, distribution_kwargs={"low": -1.0, "high": 1.0})
+        loss = PERLHFLoss(actor, make_qvalue(obs_dim, ACTION_DIM, (64, 64)), make_qvalue(obs_dim, ACTION_DIM, (8,)),
+                          gamma=gamma, alpha_init=alpha, fixed_alpha=True, action_dim=ACTION_DIM,
+                          failure_target=failure_target)
+        optim = torch.optim.Adam(loss.qvalue_network_params.flatten_keys().values(), lr=3e-3)
+        updater = SoftUpdate(loss, tau=0.2)
+        reps = 32
+        obs = torch.stack([s0, s0, s1]).repeat(reps, 1)
+        nxt = torch.stack([crashed, s1, s1]).repeat(reps, 1)
+        actions = torch.stack([crash, drive, drive]).repeat(reps, 1)
+        no = torch.zeros(3 * reps, 1, dtype=torch.bool)
+        batch = with_outcomes(make_transitions(obs, nxt, actions, actions, no, no, no),
+                              ["failure", "go", "go"] * reps)
+        for _ in range(300):
+            out = loss(batch)
+            optim.zero_grad()
+            out["loss_qvalue"].backward()
+            optim.step()
+            updater.step()
+        q = q_values(loss, torch.stack([s0, s0]), torch.stack([crash, drive])).mean(0)
+        return q[0].item(), q[1].item()
+
+    crash_zero, drive_zero = fitted("zero")
+    assert drive_zero < -1.0 and crash_zero == pytest.approx(0.0, abs=0.3)  # measured: -1.7 and -0.01
+    assert crash_zero > drive_zero + 1.0  # the defect: a crash beats driving on
+    crash_min, drive_min = fitted("batch_min")
+    assert crash_min <= drive_min + 0.3  # measured: -3.0 against -2.7

@@ -26,8 +26,18 @@ One update reads a batch of transitions ``(s, a_AV, a_exec, I, I_start, C_int, s
   (the same ``a'`` as the proxy-Q target). It is trained on the executed action, the one that braked.
 - ``loss_alpha``: SAC's temperature loss towards ``target_entropy``.
 - diagnostics (detached): ``alpha``, ``entropy``, ``td_loss``, ``gap_loss``, ``q_behavior``, ``q_agent``
-  (0 when the batch has no takeover), ``q_intervention``, ``intervention_rate``; with a disturbance
-  critic also ``q_disturbance`` (mean ``Q_dist`` at the executed actions).
+  (0 when the batch has no takeover), ``q_intervention``, ``intervention_rate``, ``failure_rate`` (share
+  of rows that end in a failure) and ``q_failure`` (mean ``Q(s, a_exec)`` on those rows, 0 when none);
+  with a disturbance critic also ``q_disturbance`` (mean ``Q_dist`` at the executed actions).
+
+Failures. A row *fails* when it is terminal and not a success (``terminated & ~success``: a crash or
+leaving the road ends the episode here). With zero reward every soft value sits near
+``-alpha * H / (1 - gamma)`` (hundreds below 0), so the usual terminal target 0 makes a crash worth more
+than any state that drives on. ``failure_target`` says what a failure row's proxy-Q target is:
+``"zero"`` (the usual terminal 0), ``"bootstrap"`` (as if the episode went on, the authors' environment,
+where collisions do not end it) or ``"batch_min"`` (the lowest target of the batch's other rows: no
+failure is worth more than anything else the batch holds). Successes and timeouts are unaffected, and so
+is ``Q_int`` (a failure's takeover cost still ends there).
 
 HACO is the same loss fed by an intervention transform without physics or selector; HAIM-DRL is HACO
 with a disturbance critic. Without one (the default) nothing of it is built or computed: PE-RLHF's and
@@ -49,6 +59,7 @@ from torchrl.objectives.sac import compute_rsample_log_prob
 from torchrl.objectives.utils import _vmap_func
 
 INTERVENTION_CRITIC_ACTIONS = ("agent", "behavior")
+FAILURE_TARGETS = ("zero", "bootstrap", "batch_min")
 
 
 def _rsample_log_prob(dist) -> tuple[torch.Tensor, torch.Tensor]:
@@ -90,12 +101,15 @@ class PERLHFLoss(LossModule):
             over both), ~20% more time per update.
         disturbance_weight: the actor's weight on ``Q_dist`` (used with a disturbance critic).
         num_disturbance_qvalue_nets: copies of ``Q_dist`` (default 2, a twin: HAIM-DRL's own twin critic).
+        failure_target: ``"zero"``, ``"bootstrap"`` or ``"batch_min"``: the proxy-Q target of rows that
+            end in a failure (module docstring).
 
     Default keys (``set_keys`` overrides): root ``observation`` (via the networks' in_keys),
     ``action`` = the agent's proposal ``a_AV`` float ``(..., A)``; under ``next`` (step outputs of the
     intervention transform): ``behavior_action`` ``(..., A)``, ``intervention`` and
     ``intervention_start`` bool ``(..., 1)``, ``intervention_cost`` float ``(..., 1)``,
-    ``disturbance_cost`` float ``(..., 1)`` (read only with a disturbance critic), and the usual
+    ``disturbance_cost`` float ``(..., 1)`` (read only with a disturbance critic), ``success`` bool
+    ``(..., 1)`` (optional: without it every terminal row counts as a failure), and the usual
     ``reward``, ``done``, ``terminated`` ``(..., 1)``. Any batch shape (flattened to one dim); the input
     tensordict is read, never written.
     """
@@ -112,6 +126,7 @@ class PERLHFLoss(LossModule):
         reward: NestedKey = "reward"
         done: NestedKey = "done"
         terminated: NestedKey = "terminated"
+        success: NestedKey = ("next", "success")
 
     default_keys = _AcceptedKeys
     tensor_keys: _AcceptedKeys
@@ -151,8 +166,12 @@ class PERLHFLoss(LossModule):
         action_dim: int | None = None,
         disturbance_weight: float = 1.0,
         num_disturbance_qvalue_nets: int = 2,
+        failure_target: str = "zero",
     ) -> None:
         super().__init__()
+        if failure_target not in FAILURE_TARGETS:
+            raise ValueError(f"PERLHFLoss failure_target={failure_target!r} is invalid; allowed: {list(FAILURE_TARGETS)}")
+        self.failure_target = failure_target
         if intervention_critic_action not in INTERVENTION_CRITIC_ACTIONS:
             raise ValueError(f"intervention_critic_action={intervention_critic_action!r}; "
                              f"allowed: {list(INTERVENTION_CRITIC_ACTIONS)}")
@@ -232,6 +251,12 @@ class PERLHFLoss(LossModule):
             dist = self.actor_network.get_dist(tensordict.select(*self.actor_network.in_keys, strict=False))
             return _rsample_log_prob(dist)
 
+    def failures(self, tensordict: TensorDictBase) -> torch.Tensor:
+        """Bool ``(B,)``: the rows whose step ended the episode without success (a crash, off-road)."""
+        terminated = tensordict.get("next").get(self.tensor_keys.terminated).squeeze(-1).bool()
+        success = tensordict.get(self.tensor_keys.success, None)
+        return terminated if success is None else terminated & ~success.squeeze(-1).bool()
+
     def intervention_cost(self, tensordict: TensorDictBase) -> torch.Tensor:
         """``C`` per transition ``(*batch)``: the stored cosine cost, or 1 at each start if not ``cosine_cost``."""
         start = tensordict.get(self.tensor_keys.intervention_start).squeeze(-1).float()
@@ -245,7 +270,9 @@ class PERLHFLoss(LossModule):
         if tensordict.batch_dims != 1:  # the takeover rows are indexed along a single batch dim
             tensordict = tensordict.reshape(-1)
         next_td = tensordict.get("next")
-        not_terminal = 1.0 - next_td.get(keys.terminated).squeeze(-1).float()
+        terminated = next_td.get(keys.terminated).squeeze(-1)
+        not_terminal = 1.0 - terminated.float()
+        failure = self.failures(tensordict)
         agent_action = tensordict.get(keys.action)
         behavior_action = tensordict.get(keys.behavior_action)
         intervention = tensordict.get(keys.intervention).squeeze(-1).float()
@@ -253,9 +280,15 @@ class PERLHFLoss(LossModule):
         with torch.no_grad():
             next_action, next_log_prob = self._sample(next_td)
             next_q = self._q("q", self.target_qvalue_network_params, next_td, next_action).min(0)[0]
-            target_q = self.gamma * not_terminal * (next_q - self.alpha * next_log_prob)
+            continuation = self.gamma * (next_q - self.alpha * next_log_prob)
+            if self.failure_target == "bootstrap":
+                target_q = (1.0 - (terminated & ~failure).float()) * continuation
+            else:
+                target_q = not_terminal * continuation
             if self.use_reward:
                 target_q = target_q + next_td.get(keys.reward).squeeze(-1)
+            if self.failure_target == "batch_min" and failure.any() and not failure.all():
+                target_q = torch.where(failure, target_q[~failure].min(), target_q)
             next_q_int = self._q("q_int", self.target_intervention_qvalue_network_params,
                                  next_td, next_action).min(0)[0]
             target_q_int = self.intervention_cost(tensordict) + self.gamma * not_terminal * next_q_int
@@ -269,6 +302,7 @@ class PERLHFLoss(LossModule):
         batch = behavior_action.shape[0]
         q_behavior, q_agent = q_all[:, :batch], q_all[:, batch:]
         loss_td = 0.5 * (q_behavior - target_q).pow(2).mean(-1).sum(0)
+        q_failure = q_behavior.detach().mean(0)[failure].mean() if failure.any() else q_all.new_zeros(())
         gap = q_agent - q_behavior[:, takeover]
         if self.gap_margin is not None:
             gap = torch.relu(gap + self.gap_margin)
@@ -304,6 +338,8 @@ class PERLHFLoss(LossModule):
                 "q_agent": q_agent.detach().mean() if q_agent.numel() else q_all.new_zeros(()),
                 "q_intervention": q_int.detach().mean(),
                 "intervention_rate": intervention.mean(),
+                "failure_rate": failure.float().mean(),
+                "q_failure": q_failure,
                 **disturbance,
             },
             batch_size=[],

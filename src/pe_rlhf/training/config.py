@@ -31,6 +31,7 @@ from omegaconf.errors import OmegaConfBaseException
 
 from pe_rlhf.envs.config import DrivingConfig
 from pe_rlhf.modules.precision import PRECISIONS
+from pe_rlhf.objectives.perlhf import FAILURE_TARGETS
 
 RECIPES_ENV_VAR = "PE_RLHF_RECIPES"
 RECIPE_CONFIG = Path("pe_rlhf") / "config.yaml"  # relative to the recipes directory
@@ -56,7 +57,8 @@ DEFAULTS: dict[str, Any] = {
     "loss": {"gamma": 0.99, "tau": 0.005, "gap_coef": 10.0, "gap_margin": None, "psi": 1.0, "intervention_weight": 1.0,
              "cosine_cost": True, "intervention_critic_action": "agent", "num_qvalue_nets": 2,
              "num_intervention_qvalue_nets": 1, "target_entropy": "auto", "alpha_init": 1.0,
-             "hidden": [256, 256], "disturbance_weight": 1.0, "num_disturbance_qvalue_nets": 2},
+             "hidden": [256, 256], "disturbance_weight": 1.0, "num_disturbance_qvalue_nets": 2,
+             "failure_target": "zero"},
     "disturbance": {"enabled": False, "threshold": 5.0, "horizon": 3.0, "follower_range": 60.0},
     "logger": {"out_dir": None, "csv": True, "wandb": False, "wandb_mode": "offline",
                "wandb_project": "pe-rlhf", "tensorboard": False, "log_every": 1},
@@ -361,6 +363,7 @@ RULES: dict[str, Rule] = {
     "loss.num_qvalue_nets": _int(1), "loss.num_intervention_qvalue_nets": _int(1),
     "loss.target_entropy": _target_entropy, "loss.alpha_init": _number(0, lo_open=True), "loss.hidden": _hidden,
     "loss.disturbance_weight": _number(0), "loss.num_disturbance_qvalue_nets": _int(1),
+    "loss.failure_target": _choice(*FAILURE_TARGETS),
     "disturbance.enabled": _bool, **{f"disturbance.{k}": _number(0, lo_open=True)
                                       for k in ("threshold", "horizon", "follower_range")},
     "logger.out_dir": _optional(_string), **{f"logger.{k}": _bool for k in ("csv", "wandb", "tensorboard")},
