@@ -369,11 +369,11 @@ def test_polite_driver_waits_for_the_follower_to_pass():
 
 
 @pytest.mark.parametrize("see_obstacles", [False, True])
-def test_obstacles_are_the_physics_policy_blind_spot(see_obstacles):
+def test_obstacles_are_the_blind_physics_policys_blind_spot(see_obstacles):
     env = straight_env(scene_seed=0)
     obstacle = add_obstacle(env, env.progress + 60.0, lane=1)
     s_obstacle = progress_of(env, obstacle)
-    policy = IDMMobilPolicy(PhysicsConfig(see_obstacles=see_obstacles))
+    policy = IDMMobilPolicy(PhysicsConfig(see_obstacles=see_obstacles, stop_for_obstacles=False))
     policy.reset()
     actions, info, terminated = drive(env, policy, 150)  # 15 s
     if not see_obstacles:
@@ -392,7 +392,8 @@ def test_stop_for_obstacles_brakes_behind_the_obstacle_and_never_passes_it():
     env = straight_env(scene_seed=0)
     obstacle = add_obstacle(env, env.progress + 60.0, lane=1)
     s_obstacle = progress_of(env, obstacle)
-    policy = IDMMobilPolicy(PhysicsConfig(stop_for_obstacles=True))
+    assert PhysicsConfig().stop_for_obstacles  # the default: a safe fallback
+    policy = IDMMobilPolicy(PhysicsConfig())
     policy.reset()
     actions, info, terminated = drive(env, policy, 200)  # 20 s
     assert not terminated and not info["crash_object"] and not info["crash_vehicle"]

@@ -316,5 +316,6 @@ def test_selector_needs_warmup():
 def test_physics_config_follows_the_switches():
     cfg = load_config(overrides=["physics.use_mobil=false", "physics.see_obstacles=true"])
     phy = physics_config(cfg)
-    assert (phy.use_idm, phy.use_mobil, phy.see_obstacles, phy.stop_for_obstacles) == (True, False, True, False)
-    assert physics_config(load_config(overrides=["physics.stop_for_obstacles=true"])).stop_for_obstacles
+    assert (phy.use_idm, phy.use_mobil, phy.see_obstacles, phy.stop_for_obstacles) == (True, False, True, True)
+    assert physics_config(load_config()).stop_for_obstacles  # the default: brakes for obstacles
+    assert not physics_config(load_config(overrides=["physics.stop_for_obstacles=false"])).stop_for_obstacles

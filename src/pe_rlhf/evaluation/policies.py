@@ -50,7 +50,7 @@ class PhysicsPolicyAdapter:
     """The IDM + MOBIL physics policy (privileged: reads ``env``'s simulator state).
 
     In: a :class:`~pe_rlhf.physics.policy.PhysicsConfig` (defaults: paper parameters,
-    blind to static obstacles). Out: float32 ``(2,)`` actions; ``obs`` is ignored.
+    braking for static obstacles in its lane, never passing them). Out: float32 ``(2,)`` actions; ``obs`` is ignored.
     """
 
     def __init__(self, config: PhysicsConfig | None = None):
@@ -103,8 +103,9 @@ class TorchRLPolicyAdapter:
 PolicyFactory = Callable[[int], Policy]
 
 POLICY_FACTORIES: dict[str, PolicyFactory] = {
-    "idm-mobil": lambda seed: PhysicsPolicyAdapter(PhysicsConfig()),
-    "idm-mobil-stop": lambda seed: PhysicsPolicyAdapter(PhysicsConfig(stop_for_obstacles=True)),
+    "idm-mobil": lambda seed: PhysicsPolicyAdapter(PhysicsConfig()),  # brakes for obstacles (the default)
+    "idm-mobil-stop": lambda seed: PhysicsPolicyAdapter(PhysicsConfig(stop_for_obstacles=True)),  # = idm-mobil
+    "idm-mobil-blind": lambda seed: PhysicsPolicyAdapter(PhysicsConfig(stop_for_obstacles=False)),
     "idm-mobil-oracle": lambda seed: PhysicsPolicyAdapter(PhysicsConfig(see_obstacles=True)),
     "random": lambda seed: RandomPolicy(seed),
 }

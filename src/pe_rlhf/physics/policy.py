@@ -1,14 +1,16 @@
 """The physics policy ``pi_phy``: IDM longitudinal + MOBIL lane changes + lane-keeping steering.
 
 It reads the simulator's state through :mod:`pe_rlhf.physics.perception` and returns
-the normalised ``[steering, throttle]`` action every other policy speaks. As in the
-paper it reasons about **vehicles only** by default: static obstacles are its known
-blind spot. Two switches change that:
+the normalised ``[steering, throttle]`` action every other policy speaks. By default it is a
+*safe fallback*, as the authors' physics (MetaDrive's ``IDMPolicy``, whose leaders include static
+objects) is:
 
-- ``stop_for_obstacles=True``: IDM treats an obstacle in its lane as a standing leader and
+- ``stop_for_obstacles=True`` (default): IDM treats an obstacle in its lane as a standing leader and
   brakes for it, but MOBIL still weighs vehicles only, so it never changes lane to pass one:
   the car stops behind a broken-down vehicle and waits (the failure the paper describes for its
   IDM-MOBIL, "often becomes stuck ... failing to take measures such as lane changes");
+- ``stop_for_obstacles=False``: blind to static obstacles (vehicles only): it drives into them
+  (this project's default before; the evaluation policy ``idm-mobil-blind``);
 - ``see_obstacles=True``: both see obstacles (IDM brakes, MOBIL changes lane around them).
 
 Three ways to use it:
@@ -47,7 +49,7 @@ class PhysicsConfig:
     idm: IDMParams = field(default_factory=IDMParams)
     mobil: MOBILParams = field(default_factory=MOBILParams)
     see_obstacles: bool = False  # IDM and MOBIL both see obstacles (brake and pass)
-    stop_for_obstacles: bool = False  # IDM brakes for obstacles, MOBIL ignores them (stuck behind)
+    stop_for_obstacles: bool = True  # IDM brakes for obstacles, MOBIL ignores them (stuck behind); False: blind
     use_idm: bool = True  # False: cruise at the desired speed, ignoring leaders ("MOBIL only")
     use_mobil: bool = True  # False: never change lane ("IDM only")
 
