@@ -1,68 +1,167 @@
-"""Does a Q-ensemble fitted on warm-up data prefer the mentor over obstacle-blind physics where it matters?
+"""The floor where it is decided: executed actions of the hybrid (IDM-MOBIL drives, the mentor takes over,
+the selector picks), against the mentor's takeovers executed as they come and IDM-MOBIL alone.
 
-    python benchmarks/ensemble_selection.py PHYSICS_FRACTION STEPS FIT_STEPS FIT_LOSS [EPSILON]
-    python benchmarks/ensemble_selection.py 0.0 10000 3000 mean    # the README's numbers (and 0.5 ...)
+    python benchmarks/ensemble_selection.py --mentors professional adversarial --split train --scenes 0-19 \\
+        --value expert --epsilons 0.5 1.5 --switch-margins none 1.0 --json out.json
 
-Collects STEPS warm-up steps on train scenes (a PHYSICS_FRACTION of the episodes driven by IDM-MOBIL
-without takeovers, the rest by the professional), fits a 5-member ensemble for FIT_STEPS steps on the
-executed actions with the env reward, then drives train scenes 0-19 with IDM-MOBIL as the agent under
-the professional's takeovers, the selector choosing mentor or physics at each takeover step; prints the
-hybrid's success rate, the share of takeover steps executing the mentor, and the advantage percentiles.
+The agent is the physics policy (``idm-mobil``, braking for obstacles); every takeover runs through the same
+:class:`~pe_rlhf.transforms.InterventionTransform` and :class:`~pe_rlhf.transforms.HybridActionSelector` as
+training (no copy of their logic). Rows per mentor:
+
+- ``idm-mobil``: no mentor (the floor the hybrid must keep);
+- ``as-is``: the mentor's takeovers executed as they come (HACO's executed actions);
+- ``hybrid eps=E margin=M``: PE-RLHF's executed actions with ``selector.value`` (``--value``).
+
+Each row: success, safety violation (episodes with a crash or leaving the road), timeouts, takeover share of
+steps and the share of takeover steps executing the mentor. Calibrate on ``--split train``; the test split is
+for the final check. Importable: :func:`drive` and :func:`measure` run nothing at import.
 """
-import sys, time
-import numpy as np, torch
-from tensordict import TensorDict
-from pe_rlhf.envs import make_gym_env, DrivingConfig, scene_seeds
-from pe_rlhf.mentors import make_mentor
-from pe_rlhf.physics import IDMMobilPolicy
-from pe_rlhf.modules import QEnsemble, fit_q_ensemble, add_next_actions
+from __future__ import annotations
 
-torch.set_num_threads(2)
-phys_frac = float(sys.argv[1]); steps = int(sys.argv[2]); fit = int(sys.argv[3]); fit_loss = sys.argv[4]
-eps = float(sys.argv[5]) if len(sys.argv) > 5 else 0.5
-rng = np.random.default_rng(0)
-env = make_gym_env(DrivingConfig(split="train"))
-mentor = make_mentor("professional", 0); phys = IDMMobilPolicy()
-train = scene_seeds("train")
-O, A, R, N, T, D = [], [], [], [], [], []
-t0 = time.time(); n = 0; crashes = 0
-while n < steps:
-    obs, _ = env.reset(options={"scene_seed": int(rng.choice(train))})
-    use_phys = rng.random() < phys_frac
-    mentor.reset(env); phys.reset()
-    done = False
-    while not done and n < steps:
-        a = np.asarray(phys(env) if use_phys else mentor.act(env), dtype=np.float32)
-        nobs, r, term, trunc, info = env.step(a)
-        O.append(obs); A.append(a); R.append(r); N.append(nobs); T.append(term); D.append(term or trunc or n == steps - 1)
-        crashes += info.get("crash_object", False) or info.get("crash_vehicle", False)
-        obs = nobs; done = term or trunc; n += 1
-print(f"collected {n} steps in {time.time()-t0:.0f}s, crashes {crashes}", flush=True)
-td = TensorDict({"observation": torch.as_tensor(np.array(O)), "action": torch.as_tensor(np.array(A)),
-                 "next": {"observation": torch.as_tensor(np.array(N)), "reward": torch.as_tensor(R, dtype=torch.float32)[:, None],
-                          "terminated": torch.as_tensor(T)[:, None], "done": torch.as_tensor(D)[:, None]}}, [n])
-add_next_actions(td)
-ens = QEnsemble(250, num_members=5, hidden=(256, 256))
-t0 = time.time()
-info = fit_q_ensemble(ens, td, steps=fit, batch_size=256, loss=fit_loss, seed=0)
-print(f"fit {fit} in {time.time()-t0:.0f}s; Q mean on data {ens.values(td['observation'][:2000], td['action'][:2000]).mean():.2f}", flush=True)
-# hybrid drive: agent = physics; mentor takes over; selector picks
-succ = []; advs = []; chosen = []; tk = 0; tot = 0
-for seed in list(range(0, 20)):
-    obs, _ = env.reset(options={"scene_seed": seed}); mentor.reset(env); phys.reset()
-    done = False
-    while not done:
-        a_phy = np.asarray(phys(env), dtype=np.float32)
-        takeover, m = mentor(env, a_phy)
-        a = a_phy
-        if takeover:
-            q = ens.values(torch.as_tensor(np.stack([obs, obs])), torch.as_tensor(np.stack([m, a_phy]).astype(np.float32)))
-            adv = float((q[:, 0] - q[:, 1]).mean().detach()); advs.append(adv)
-            pick = adv >= eps; chosen.append(pick); tk += 1
-            a = np.asarray(m, dtype=np.float32) if pick else a_phy
-        obs, r, term, trunc, info = env.step(a); tot += 1
-        done = term or trunc
-    succ.append(info["success"])
-advs = np.array(advs)
-print(f"phys_frac={phys_frac} fit={fit} loss={fit_loss}: hybrid success {np.mean(succ):.2f}; takeover {tk}/{tot}; "
-      f"mentor chosen {np.mean(chosen) if chosen else 0:.2f}; adv pcts {np.percentile(advs,[5,50,95,99]).round(2) if len(advs) else None}", flush=True)
+import argparse
+import json
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from pe_rlhf.envs import DrivingConfig, scene_seeds
+from pe_rlhf.envs.torchrl_env import make_env, unwrap
+from pe_rlhf.mentors import make_mentor
+from pe_rlhf.physics import IDMMobilPolicy, PhysicsConfig
+from pe_rlhf.training.value_expert import load_value_expert, parse_value_source
+from pe_rlhf.transforms import HybridActionSelector, InterventionTransform
+
+
+class PhysicsAgent:
+    """The agent of this benchmark: ``IDMMobilPolicy`` as a TorchRL policy (writes ``action`` from the simulator)."""
+
+    def __init__(self, env, config: PhysicsConfig | None = None):
+        self.sim, self.policy = unwrap(env), IDMMobilPolicy(config or PhysicsConfig())
+
+    def __call__(self, td):
+        td.set("action", torch.as_tensor(np.asarray(self.policy(self.sim), np.float32)))
+        return td
+
+
+def drive(mentor: str | None, scenes: list[int], split: str = "train", selector: HybridActionSelector | None = None,
+          mentor_seed: int = 0, world: DrivingConfig | None = None, progress: str | None = None) -> dict:
+    """Episodes of IDM-MOBIL under ``mentor`` (None: alone), the selector picking when given; a dict of rates."""
+    world = world or DrivingConfig(split=split, lane_features=True)
+    env = make_env(world)
+    transform = None
+    if mentor is not None:
+        physics = IDMMobilPolicy(PhysicsConfig()) if selector is not None else None
+        transform = InterventionTransform(make_mentor(mentor, mentor_seed), selector, physics)
+        env.append_transform(transform)
+    agent = PhysicsAgent(env)
+    rows = []
+    for seed in tqdm(scenes, desc=progress, leave=False, disable=progress is None):
+        agent.policy.reset()
+        td = env.reset(scene_seed=int(seed))
+        steps = takeover = chosen = 0
+        while True:
+            td = agent(td)
+            td = env.step(td)
+            nxt = td.get("next")
+            steps += 1
+            if transform is not None:
+                takeover += bool(nxt.get("intervention"))
+                chosen += bool(nxt.get("mentor_selected"))
+            if bool(nxt.get("done")):
+                break
+            td = nxt.exclude("reward", "done", "terminated", "truncated")
+        failed = bool(nxt.get("crash_vehicle") | nxt.get("crash_object") | nxt.get("out_of_road"))
+        rows.append({"scene": int(seed), "success": bool(nxt.get("success")), "violation": failed,
+                     "timeout": not failed and not bool(nxt.get("success")), "steps": steps,
+                     "takeover_steps": takeover, "mentor_steps": chosen})
+    env.close()
+    total_takeover = sum(r["takeover_steps"] for r in rows)
+    return {"episodes": len(rows),
+            "success": float(np.mean([r["success"] for r in rows])),
+            "violation": float(np.mean([r["violation"] for r in rows])),
+            "timeout": float(np.mean([r["timeout"] for r in rows])),
+            "takeover_share": total_takeover / max(sum(r["steps"] for r in rows), 1),
+            "mentor_share": sum(r["mentor_steps"] for r in rows) / max(total_takeover, 1),
+            "per_episode": rows}
+
+
+def measure(mentors: list[str], scenes: list[int], split: str, value: str, epsilons: list[float],
+            switch_margins: list[float | None], variance_threshold: float | None = None) -> list[dict]:
+    """Every row (see the module docstring) for every mentor, IDM-MOBIL alone once."""
+    world = DrivingConfig(split=split, lane_features=True)
+    kind, path = parse_value_source(value)
+    if kind != "expert":
+        raise SystemExit("--value: only an expert (expert or expert:PATH) is frozen before training; a warm-up "
+                         "ensemble exists only inside a run")
+    ensemble = load_value_expert(path, world_obs_dim(world))
+    results = [{"mentor": None, "row": "idm-mobil", **drive(None, scenes, split, world=world, progress="idm-mobil")}]
+    for mentor in mentors:
+        results.append({"mentor": mentor, "row": "as-is",
+                        **drive(mentor, scenes, split, world=world, progress=f"{mentor} as-is")})
+        for eps in epsilons:
+            for margin in switch_margins:
+                selector = HybridActionSelector(ensemble, eps, variance_threshold, switch_margin=margin)
+                label = f"hybrid eps={eps:g} margin={'none' if margin is None else f'{margin:g}'}"
+                results.append({"mentor": mentor, "row": label, "epsilon_select": eps, "switch_margin": margin,
+                                **drive(mentor, scenes, split, selector, world=world, progress=f"{mentor} {label}")})
+    return results
+
+
+def world_obs_dim(world: DrivingConfig) -> int:
+    from pe_rlhf.envs.observation import observation_size
+
+    return observation_size(world.lidar_beams, world.lane_features)
+
+
+def parse_scenes(text: str, split: str) -> list[int]:
+    lo, _, hi = text.partition("-")
+    seeds = scene_seeds(split)
+    first, last = int(lo), int(hi or lo)
+    return [s for s in seeds if first <= s <= last] or list(seeds[first:last + 1])
+
+
+def margin_arg(text: str) -> float | None:
+    return None if text.lower() == "none" else (math.inf if text.lower() == "inf" else float(text))
+
+
+def format_table(results: list[dict]) -> str:
+    lines = ["| mentor | row | success | violation | timeout | takeover share | mentor share |",
+             "|---|---|---|---|---|---|---|"]
+    for r in results:
+        lines.append(f"| {r['mentor'] or '-'} | {r['row']} | {r['success']:.2f} | {r['violation']:.2f} | "
+                     f"{r['timeout']:.2f} | {r['takeover_share']:.2f} | {r['mentor_share']:.2f} |")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> list[dict]:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--mentors", nargs="+", default=["professional", "adversarial"])
+    parser.add_argument("--split", choices=["train", "test"], default="train")
+    parser.add_argument("--scenes", default="0-19", help="a range of the split's scene seeds (train 0-..., test 1000-...)")
+    parser.add_argument("--value", default="expert", help="selector.value: expert | expert:PATH")
+    parser.add_argument("--epsilons", type=float, nargs="+", default=[0.5, 1.5])
+    parser.add_argument("--switch-margins", type=margin_arg, nargs="+", default=[None], help="none, a number, or inf")
+    parser.add_argument("--variance-threshold", type=float, default=None)
+    parser.add_argument("--json", type=Path, default=None)
+    args = parser.parse_args(argv)
+    torch.set_num_threads(1)
+    t = time.time()
+    scenes = parse_scenes(args.scenes, args.split)
+    results = measure(args.mentors, scenes, args.split, args.value, args.epsilons, args.switch_margins,
+                      args.variance_threshold)
+    print(format_table(results))
+    print(f"{len(scenes)} {args.split} scenes ({scenes[0]}-{scenes[-1]}), value {args.value}, "
+          f"{time.time() - t:.0f} s", flush=True)
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps({"args": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()},
+                                         "results": results}, indent=2, default=str) + "\n")
+    return results
+
+
+if __name__ == "__main__":
+    main()

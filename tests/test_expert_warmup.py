@@ -73,7 +73,7 @@ def test_bad_warmup_policy_fails_naming_the_field(sac_run, tmp_path):
         builders.build_warmup_driver(_cfg(f"collector.warmup_policy={tmp_path / 'nope'}"))
     assert e.value.field == "collector.warmup_policy" and "no config.yaml" in str(e.value)
     with pytest.raises(ConfigError, match=r"reads \d+-float observations"):
-        builders.build_warmup_driver(_cfg(f"collector.warmup_policy={sac_run}", "env.lane_features=true"))
+        builders.build_warmup_driver(_cfg(f"collector.warmup_policy={sac_run}", "env.lane_features=false"))
     with pytest.raises(ConfigError, match="collector.warmup_policy"):
         _cfg(f"collector.warmup_policy={sac_run}", "collector.warmup_steps=0", "selector.enabled=false",
              "physics.enabled=false")

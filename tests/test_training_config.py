@@ -54,7 +54,7 @@ def test_defaults_load_and_validate_with_the_paper_values():
                                                                                                            10000)
     assert (cfg.loss.gap_coef, cfg.selector.epsilon_select, cfg.loss.psi, cfg.loss.intervention_weight) == (
         10.0, 0.5, 1.0, 1.0)
-    assert driving_config(cfg) == DrivingConfig()
+    assert driving_config(cfg) == DrivingConfig(lane_features=True)  # every Table-1 row uses the lane summary
     assert driving_config(cfg).split == "train"
 
 

@@ -93,7 +93,7 @@ IMITATION_FAMILIES = ("offline", "gail", "hil")
 _COMMON: dict[str, Any] = {
     "seed": 0,
     "profile": "paper",
-    "env": {},
+    "env": {"lane_features": True},
     "logger": {"out_dir": None, "csv": True, "wandb": False, "wandb_mode": "offline", "wandb_project": "pe-rlhf",
                "tensorboard": False, "log_every": 1},
     "eval": {"every_frames": 100_000, "episodes": 50, "split": "test"},

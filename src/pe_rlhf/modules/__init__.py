@@ -2,7 +2,7 @@
 
 from pe_rlhf.modules.networks import QValueNet, make_actor, make_qvalue
 from pe_rlhf.modules.ensemble_training import EnsembleSchedule, add_next_actions, fit_q_ensemble
-from pe_rlhf.modules.q_ensemble import QEnsemble, load_q_ensemble, save_q_ensemble
+from pe_rlhf.modules.q_ensemble import QEnsemble, load_q_ensemble, q_ensemble_from_critics, save_q_ensemble
 
 __all__ = ["EnsembleSchedule", "QEnsemble", "QValueNet", "add_next_actions", "fit_q_ensemble", "load_q_ensemble", "make_actor",
-           "make_qvalue", "save_q_ensemble"]
+           "make_qvalue", "q_ensemble_from_critics", "save_q_ensemble"]

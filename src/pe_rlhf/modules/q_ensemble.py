@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import pickle
 import zipfile
+from collections.abc import Mapping
 from typing import Any
 
 import torch
@@ -145,3 +146,46 @@ def load_q_ensemble(path: str | os.PathLike, *, map_location: str | torch.device
     if map_location is not None:
         ensemble = ensemble.to(map_location)
     return ensemble
+
+
+def q_ensemble_from_critics(*stacks: Mapping[str, torch.Tensor], action_dim: int = 2,
+                            max_members: int | None = None) -> QEnsemble:
+    """A frozen ``QEnsemble`` whose members are the critics of a trained loss (e.g. a SAC run's twin Q).
+
+    Each of ``stacks`` maps ``make_qvalue`` parameter names (``"module.mlp.0.weight"``, ...) to tensors with
+    a leading copies dim, as a TorchRL loss stores them (``qvalue_network_params``,
+    ``target_qvalue_network_params``); the members are the copies of every stack in order (the authors'
+    4-head "ensemble" is SAC's online twin then its target twin). ``obs_dim`` and ``hidden`` are read off
+    the weights; ``max_members`` keeps only the first members (1: the "w/o ensemble" ablation). Raises
+    ``ValueError`` when the stacks do not describe one architecture.
+    """
+    if not stacks:
+        raise ValueError("q_ensemble_from_critics needs at least one stack of critic parameters")
+    names = sorted(stacks[0])
+    for i, stack in enumerate(stacks[1:], 1):
+        if sorted(stack) != names:
+            raise ValueError(f"q_ensemble_from_critics: stack {i} has parameters {sorted(stack)}, stack 0 has {names}")
+    merged = {name: torch.cat([torch.as_tensor(s[name]).detach().float() for s in stacks], 0) for name in names}
+    weights = sorted((n for n in names if n.endswith(".weight")), key=lambda n: int(n.split(".")[-2]))
+    if not weights:
+        raise ValueError(f"q_ensemble_from_critics: no weight tensors among {names}")
+    in_features = merged[weights[0]].shape[-1]
+    hidden = tuple(int(merged[n].shape[-2]) for n in weights[:-1])
+    members = int(merged[weights[0]].shape[0])
+    if max_members is not None:
+        members = min(members, int(max_members))
+        merged = {n: t[:members] for n, t in merged.items()}
+    ensemble = QEnsemble(int(in_features) - action_dim, action_dim, members, hidden)
+    state = ensemble.state_dict()  # the members live in params_td; the template module's entries stay
+    try:
+        for n, t in merged.items():
+            key = f"ensemble.params_td.{n}"
+            if key not in state or state[key].shape != t.shape:
+                raise RuntimeError(f"{n}: shape {tuple(t.shape)}, expected "
+                                   f"{tuple(state[key].shape) if key in state else 'no such parameter'}")
+            state[key] = t
+        ensemble.load_state_dict(state, strict=True)
+    except RuntimeError as err:
+        raise ValueError(f"q_ensemble_from_critics: the parameters do not fit a make_qvalue critic "
+                         f"(obs {in_features - action_dim}, hidden {hidden}): {err}") from err
+    return ensemble.requires_grad_(False)

@@ -48,6 +48,7 @@ from pe_rlhf.transforms import (
     RealtimePacing,
     TrafficDisturbanceCost,
 )
+from pe_rlhf.training.value_expert import load_value_expert, parse_value_source
 
 OBS_DIM = 250  # the default world's observation (240 lidar beams); obs_dim(cfg) follows env.lidar_beams and env.lane_features
 # A worker's Q-ensemble seen from its collector, in TorchRL's attribute-path notation (cascade_execute);
@@ -113,10 +114,27 @@ def build_physics(cfg) -> IDMMobilPolicy | None:
     return IDMMobilPolicy(physics_config(cfg)) if cfg.physics.enabled else None
 
 
+def value_is_fitted(cfg) -> bool:
+    """Whether the selector's ensemble is fitted on the warm-up (``selector.value=warmup``) rather than a
+    frozen expert's critics."""
+    return parse_value_source(cfg.selector.value)[0] == "warmup"
+
+
 def build_q_ensemble(cfg) -> QEnsemble | None:
+    """The selector's value estimator: a fresh ensemble to fit on the warm-up, or the frozen expert that
+    ``selector.value`` names (at most ``selector.num_members`` of its members), or None without a selector."""
     if not cfg.selector.enabled:
         return None
+    kind, path = parse_value_source(cfg.selector.value)
+    if kind == "expert":
+        return load_value_expert(path, obs_dim(cfg), max_members=int(cfg.selector.num_members))
     return QEnsemble(obs_dim(cfg), num_members=int(cfg.selector.num_members), hidden=tuple(cfg.selector.hidden))
+
+
+def build_selector(cfg, ensemble: QEnsemble) -> HybridActionSelector:
+    margin = cfg.selector.switch_margin
+    return HybridActionSelector(ensemble, float(cfg.selector.epsilon_select), cfg.selector.variance_threshold,
+                                switch_margin=None if margin is None else float(margin))
 
 
 def build_train_env(cfg, env_config, mentor: Mentor, ensemble: QEnsemble | None, physics,
@@ -130,8 +148,7 @@ def build_train_env(cfg, env_config, mentor: Mentor, ensemble: QEnsemble | None,
     env = make_env(env_config)
     selector = None
     if ensemble is not None:
-        selector = HybridActionSelector(ensemble, float(cfg.selector.epsilon_select),
-                                        cfg.selector.variance_threshold)
+        selector = build_selector(cfg, ensemble)
     warmup_steps = math.ceil(int(cfg.collector.warmup_steps) / num_workers)
     env.append_transform(InterventionTransform(mentor, selector, physics if selector else None,
                                                warmup_steps=warmup_steps, warmup_driver=build_warmup_driver(cfg)))

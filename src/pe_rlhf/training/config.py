@@ -41,10 +41,11 @@ OPEN_GROUPS = ("env", "mentor.kwargs")  # free-form groups, checked by name in v
 DEFAULTS: dict[str, Any] = {
     "seed": 0,
     "profile": "paper",
-    "env": {},
+    "env": {"lane_features": True},
     "mentor": {"name": "professional", "seed": 0, "kwargs": {}},
     "physics": {"enabled": True, "see_obstacles": False, "stop_for_obstacles": True, "use_idm": True, "use_mobil": True},
-    "selector": {"enabled": True, "epsilon_select": 0.5, "variance_threshold": None, "num_members": 5,
+    "selector": {"enabled": True, "value": "warmup", "epsilon_select": 0.5, "variance_threshold": None,
+                 "switch_margin": None, "num_members": 5,
                  "hidden": [256, 256], "warmup_fit_steps": 3000, "refresh_every": 0, "refresh_steps": 500,
                  "refresh_data": "warmup",
                  "fit_loss": "mean", "target_noise": 0.1, "tau": 0.005, "lr": 3.0e-4, "batch_size": 256},
@@ -330,6 +331,19 @@ def _mentor_name(v) -> str | None:
     return f"allowed: {list(MENTOR_NAMES)} or a 'package.module:ClassName' import path"
 
 
+def _value_source(v) -> str | None:
+    from pe_rlhf.training.value_expert import packaged_expert_path, parse_value_source
+
+    try:
+        _, path = parse_value_source(v)
+    except ValueError as err:
+        return str(err).split("; ", 1)[1]
+    path = path if path is not None or v != "expert" else packaged_expert_path()
+    if path is not None and not path.exists():
+        return f"{str(path)!r} does not exist (a Q-ensemble file or a run folder)"
+    return None
+
+
 def _backend(v) -> str | None:
     if v not in BACKENDS:
         return f"allowed: {list(BACKENDS)}"
@@ -348,6 +362,7 @@ RULES: dict[str, Rule] = {
     "selector.hidden": _hidden, "selector.warmup_fit_steps": _int(0), "selector.refresh_every": _int(0),
     "selector.refresh_steps": _int(0), "selector.fit_loss": _choice(*FIT_LOSSES),
     "selector.refresh_data": _choice(*REFRESH_DATA),
+    "selector.value": _value_source, "selector.switch_margin": _optional(_number(0)),
     "selector.target_noise": _number(0), "selector.tau": _number(0, 1, lo_open=True), "selector.lr": _number(0, lo_open=True),
     "selector.batch_size": _int(1),
     "collector.total_frames": _int(1), "collector.frames_per_batch": _int(1),

@@ -224,8 +224,10 @@ class _Run:
         self.loss, soft_update = builders.build_loss(cfg, self.actor)
         self.optimizers = builders.build_optimizers(cfg, self.loss)
         self.replay, self.warmup_buffer = builders.build_replay_buffer(cfg), builders.build_replay_buffer(cfg)
-        self.schedule = EnsembleSchedule(int(cfg.collector.warmup_steps), int(cfg.selector.refresh_every),
-                                         int(cfg.selector.warmup_fit_steps), int(cfg.selector.refresh_steps))
+        fitted = cfg.selector.enabled and builders.value_is_fitted(cfg)  # an expert is frozen: never fitted
+        self.schedule = EnsembleSchedule(int(cfg.collector.warmup_steps), int(cfg.selector.refresh_every) if fitted else 0,
+                                         int(cfg.selector.warmup_fit_steps) if fitted else 0,
+                                         int(cfg.selector.refresh_steps))
         # selector.refresh_data=all: refreshes also fit on the online transitions (the ensemble sees what the
         # hybrid policy's actions led to in the states the agent visits, crashes under physics' actions included)
         self._ensemble_sees_online = (self.ensemble is not None and int(cfg.selector.refresh_every) > 0

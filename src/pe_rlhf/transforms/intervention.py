@@ -86,6 +86,7 @@ class InterventionTransform(Transform):
         self.warmup_driver = warmup_driver
         self.total_steps = 0
         self._in_takeover = False
+        self._previous_choice = False  # the selector's last choice (mentor?) in the current takeover
         self._pending: dict | None = None
 
     @property
@@ -124,8 +125,9 @@ class InterventionTransform(Transform):
             executed = mentor_action
             if self.selector is not None:
                 physics_action = np.asarray(self.physics(env), dtype=np.float32)
+                previous = self._previous_choice if self._in_takeover else None
                 hybrid, chosen = self.selector.select(observation, torch.as_tensor(mentor_action),
-                                                      torch.as_tensor(physics_action))
+                                                      torch.as_tensor(physics_action), previous)
                 executed, mentor_selected = hybrid.numpy().astype(np.float32), bool(chosen.item())
         show = getattr(self.mentor, "show_control", None)
         if show is not None and takeover and not warmup:  # a person's window shows who drives now
@@ -167,6 +169,7 @@ class InterventionTransform(Transform):
         if d is None:
             raise RuntimeError("InterventionTransform._step without a decision: was the action set?")
         self._in_takeover = d["intervention"]
+        self._previous_choice = d["mentor_selected"]
         self.total_steps += 1
         for key in ("behavior_action", "mentor_action", "physics_action"):
             next_tensordict.set(key, torch.as_tensor(d[key], dtype=torch.float32))

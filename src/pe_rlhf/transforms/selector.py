@@ -21,10 +21,18 @@ class HybridActionSelector(TensorDictModuleBase):
 
     A non-finite action (NaN/inf entries) is never chosen over a finite one, whatever the ensemble says.
 
-    ``epsilon_select`` defaults to the paper's table (0.5); the authors' code uses 1.5.
+    ``epsilon_select`` defaults to the paper's table (0.5); the authors' code uses 1.5. A negative value
+    trusts the mentor unless physics is valued ``-epsilon_select`` above it (physics as a veto).
     ``variance_threshold`` (off by default) reproduces that code's escape: the mentor is also
     trusted when the ensemble's standard deviation on the physics action exceeds it (the
     estimator does not know that action well enough to overrule the person).
+
+    ``switch_margin`` (off by default: every step is judged alone, as the paper) makes a takeover's choice
+    sticky: given the previous step's choice (``select(..., previous=)``), the selector switches from the
+    mentor to physics only when the advantage falls below ``epsilon_select - switch_margin``, and from
+    physics to the mentor only when it reaches ``epsilon_select + switch_margin``. One step of braking
+    costs little under an expert's continuation, so without it physics can win step after step behind an
+    obstacle that the mentor was steering around.
     """
 
     def __init__(
@@ -32,6 +40,7 @@ class HybridActionSelector(TensorDictModuleBase):
         q_ensemble: QEnsemble,
         epsilon_select: float = 0.5,
         variance_threshold: float | None = None,
+        switch_margin: float | None = None,
         observation_key: NestedKey = "observation",
         mentor_action_key: NestedKey = "mentor_action",
         physics_action_key: NestedKey = "physics_action",
@@ -45,6 +54,12 @@ class HybridActionSelector(TensorDictModuleBase):
             or variance_threshold < 0
         ):
             raise ValueError(f"variance_threshold={variance_threshold!r} must be a finite number >= 0, or None")
+        if switch_margin is not None and (
+            isinstance(switch_margin, bool) or not isinstance(switch_margin, (int, float))
+            or math.isnan(switch_margin) or switch_margin < 0
+        ):
+            raise ValueError(f"switch_margin={switch_margin!r} must be a number >= 0 (inf: never switch), or None")
+        self.switch_margin = None if switch_margin is None else float(switch_margin)
         self.q_ensemble = q_ensemble
         self.epsilon_select = float(epsilon_select)
         self.variance_threshold = variance_threshold
@@ -53,8 +68,12 @@ class HybridActionSelector(TensorDictModuleBase):
 
     @torch.no_grad()
     def select(self, observation: torch.Tensor, mentor_action: torch.Tensor,
-               physics_action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """``(hybrid_action (*B, A), mentor_selected (*B, 1) bool)`` for plain tensors."""
+               physics_action: torch.Tensor, previous: torch.Tensor | bool | None = None
+               ) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(hybrid_action (*B, A), mentor_selected (*B, 1) bool)`` for plain tensors.
+
+        ``previous``: the choice at the previous step of the same takeover (bool, or ``(*B, 1)`` /
+        ``(*B,)`` bool; None at a takeover's start); used only with ``switch_margin``."""
         obs = torch.cat([observation, observation], 0) if observation.dim() > 1 else torch.stack([observation] * 2)
         acts = torch.cat([mentor_action, physics_action], 0) if mentor_action.dim() > 1 else torch.stack(
             [mentor_action, physics_action])
@@ -62,6 +81,11 @@ class HybridActionSelector(TensorDictModuleBase):
         q_mentor, q_phy = q.chunk(2, dim=1)
         advantage = (q_mentor - q_phy).mean(0)
         chosen = advantage >= self.epsilon_select
+        if self.switch_margin is not None and previous is not None:
+            prev = torch.as_tensor(previous, dtype=torch.bool, device=advantage.device).reshape(advantage.shape)
+            stay_mentor = advantage >= self.epsilon_select - self.switch_margin
+            move_to_mentor = advantage >= self.epsilon_select + self.switch_margin
+            chosen = torch.where(prev, stay_mentor, move_to_mentor)
         if self.variance_threshold is not None:
             chosen = chosen | (q_phy.std(0, unbiased=False) > self.variance_threshold)
         finite_mentor = torch.isfinite(acts[: len(acts) // 2]).all(-1)
