@@ -30,26 +30,31 @@ from tqdm import tqdm
 
 from pe_rlhf.envs import DrivingConfig, scene_seeds
 from pe_rlhf.envs.torchrl_env import make_env, unwrap
+from pe_rlhf.evaluation.policies import make_policy
 from pe_rlhf.mentors import make_mentor
 from pe_rlhf.physics import IDMMobilPolicy, PhysicsConfig
 from pe_rlhf.training.value_expert import load_value_expert, parse_value_source
 from pe_rlhf.transforms import HybridActionSelector, InterventionTransform
 
 
-class PhysicsAgent:
-    """The agent of this benchmark: ``IDMMobilPolicy`` as a TorchRL policy (writes ``action`` from the simulator)."""
+class RegisteredAgent:
+    """An evaluation policy by name (``pe_rlhf.evaluation.make_policy``: ``idm-mobil``, ``random``, ...) as a
+    TorchRL policy on ``env``: reads ``observation``, writes ``action``."""
 
-    def __init__(self, env, config: PhysicsConfig | None = None):
-        self.sim, self.policy = unwrap(env), IDMMobilPolicy(config or PhysicsConfig())
+    def __init__(self, env, name: str = "idm-mobil", seed: int = 0):
+        self.sim, self.policy = unwrap(env), make_policy(name, seed)
 
     def __call__(self, td):
-        td.set("action", torch.as_tensor(np.asarray(self.policy(self.sim), np.float32)))
+        obs = td.get("observation").numpy()
+        td.set("action", torch.as_tensor(np.asarray(self.policy(obs, self.sim), np.float32)))
         return td
 
 
 def drive(mentor: str | None, scenes: list[int], split: str = "train", selector: HybridActionSelector | None = None,
-          mentor_seed: int = 0, world: DrivingConfig | None = None, progress: str | None = None) -> dict:
-    """Episodes of IDM-MOBIL under ``mentor`` (None: alone), the selector picking when given; a dict of rates."""
+          mentor_seed: int = 0, world: DrivingConfig | None = None, progress: str | None = None,
+          driver: str = "idm-mobil") -> dict:
+    """Episodes of ``driver`` (an evaluation policy name; IDM-MOBIL by default) under ``mentor`` (None: alone),
+    the selector picking when given; a dict of rates."""
     world = world or DrivingConfig(split=split, lane_features=True)
     env = make_env(world)
     transform = None
@@ -57,7 +62,7 @@ def drive(mentor: str | None, scenes: list[int], split: str = "train", selector:
         physics = IDMMobilPolicy(PhysicsConfig()) if selector is not None else None
         transform = InterventionTransform(make_mentor(mentor, mentor_seed), selector, physics)
         env.append_transform(transform)
-    agent = PhysicsAgent(env)
+    agent = RegisteredAgent(env, driver)
     rows = []
     for seed in tqdm(scenes, desc=progress, leave=False, disable=progress is None):
         agent.policy.reset()
@@ -111,6 +116,15 @@ def measure(mentors: list[str], scenes: list[int], split: str, value: str, epsil
     return results
 
 
+def takeover_rates(mentors: list[str], drivers: list[str], scenes: list[int], split: str = "train") -> list[dict]:
+    """Each mentor's takeover share of steps watching each driver, its takeovers executed as they come (HACO):
+    a competent driver should rarely be taken over, a bad one nearly always."""
+    world = DrivingConfig(split=split, lane_features=True)
+    return [{"mentor": m, "row": f"driver={d}", "driver": d,
+             **drive(m, scenes, split, world=world, progress=f"{m} watching {d}", driver=d)}
+            for m in mentors for d in drivers]
+
+
 def world_obs_dim(world: DrivingConfig) -> int:
     from pe_rlhf.envs.observation import observation_size
 
@@ -146,12 +160,19 @@ def main(argv=None) -> list[dict]:
     parser.add_argument("--epsilons", type=float, nargs="+", default=[0.5, 1.5])
     parser.add_argument("--switch-margins", type=margin_arg, nargs="+", default=[None], help="none, a number, or inf")
     parser.add_argument("--variance-threshold", type=float, default=None)
+    parser.add_argument("--takeover-rates", nargs="*", metavar="DRIVER", default=None,
+                        help="instead: each mentor's takeover share watching these drivers (e.g. idm-mobil-oracle "
+                             "idm-mobil idm-mobil-blind random)")
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     t = time.time()
     scenes = parse_scenes(args.scenes, args.split)
-    results = measure(args.mentors, scenes, args.split, args.value, args.epsilons, args.switch_margins,
+    if args.takeover_rates is not None:
+        results = takeover_rates(args.mentors, args.takeover_rates or ["idm-mobil-oracle", "idm-mobil",
+                                                                       "idm-mobil-blind", "random"], scenes, args.split)
+    else:
+        results = measure(args.mentors, scenes, args.split, args.value, args.epsilons, args.switch_margins,
                       args.variance_threshold)
     print(format_table(results))
     print(f"{len(scenes)} {args.split} scenes ({scenes[0]}-{scenes[-1]}), value {args.value}, "
