@@ -2,6 +2,10 @@
 
     python benchmarks/selector_accuracy.py RUN_DIR [RUN_DIR ...] [--scenes 0-19] [--hold 10] [--horizon 40]
         [--epsilons 0 0.5 1.5] [--max-states 300] [--every 10] [--json out.json]
+    python benchmarks/selector_accuracy.py --mentors professional adversarial [--value expert] ...
+
+``--mentors``: no run folder; the recipe's defaults with each mentor and ``selector.value`` (``--value``: a
+frozen expert, the packaged one by default), as a PE-RLHF run would start its online phase with.
 
 For each run folder (PE-RLHF recipe; its ``config.yaml`` and the Q-ensemble in its newest checkpoint):
 obstacle-blind IDM-MOBIL drives the train scenes as the agent, under the run's own mentor (its
@@ -74,15 +78,21 @@ def count_events(states: list[tuple]) -> int:
     return events
 
 
-def measure(run: Path, args) -> dict:
-    cfg, ensemble = load_run(run)
+def expert_setup(mentor: str, value: str):
+    """The recipe's defaults with ``mentor`` and ``selector.value=value`` (a frozen expert: nothing to fit)."""
+    cfg = load_config(overrides=[f"mentor.name={mentor}", f"selector.value={value}"])
+    return cfg, build_q_ensemble(cfg).eval()
+
+
+def measure(run: Path | str, args, setup=None) -> dict:
+    cfg, ensemble = setup if setup is not None else load_run(run)
     env = make_gym_env(driving_config(cfg))
     mentor, driver, physics = build_mentor(cfg), IDMMobilPolicy(PhysicsConfig()), build_physics(cfg)
     oracle = IDMMobilPolicy(PhysicsConfig(see_obstacles=True))
     eps_run = float(cfg.selector.epsilon_select)
     states = []  # (advantage, mentor_fails, physics_fails, scene seed, step)
     differences = []  # a_mentor - a_phy at every takeover state
-    bar = tqdm(total=args.max_states, desc=run.name, leave=False)
+    bar = tqdm(total=args.max_states, desc=str(getattr(run, "name", run)), leave=False)
     for seed in args.scenes:
         obs, _ = env.reset(options={"scene_seed": seed})
         mentor.reset(env)
@@ -135,7 +145,9 @@ def measure(run: Path, args) -> dict:
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("runs", nargs="+", type=Path)
+    parser.add_argument("runs", nargs="*", type=Path)
+    parser.add_argument("--mentors", nargs="+", default=None, help="no run folder: these mentors with --value")
+    parser.add_argument("--value", default="expert", help="selector.value with --mentors (expert | expert:PATH)")
     parser.add_argument("--scenes", type=parse_scenes, default=parse_scenes("0-19"), help="train scene seeds, e.g. 0-19")
     parser.add_argument("--hold", type=int, default=10, help="steps each candidate drives before the oracle does")
     parser.add_argument("--horizon", type=int, default=40, help="steps of each counterfactual rollout")
@@ -146,11 +158,14 @@ def main(argv=None):
     args = parser.parse_args(argv)
     if args.every < 1:
         parser.error(f"--every {args.every}: must be at least 1 (1 labels every takeover state)")
+    if not args.runs and not args.mentors:
+        parser.error("give run folders or --mentors")
     torch.set_num_threads(1)
     results = []
-    for run in args.runs:
+    jobs = [(run, None) for run in args.runs] + [(f"{m} ({args.value})", (m, args.value)) for m in args.mentors or []]
+    for run, virtual in jobs:
         t = time.time()
-        r = measure(run, args)
+        r = measure(run, args, expert_setup(*virtual) if virtual else None)
         r["seconds"] = time.time() - t
         results.append(r)
         sel = ", ".join(f"eps {k}: {v:.2f}" for k, v in r["selector_right"].items())
@@ -162,6 +177,7 @@ def main(argv=None):
               f"when the mentor is safe {r['advantage_median_when_mentor_safe']}, when physics is safe "
               f"{r['advantage_median_when_physics_safe']}", flush=True)
     if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps({"args": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()
                                                   if k != "runs"}, "results": results}, indent=2) + "\n")
     return results

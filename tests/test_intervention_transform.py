@@ -283,6 +283,34 @@ def test_physics_action_is_zero_outside_takeovers():
     assert not _flags(td, "mentor_selected").any()
 
 
+def test_the_selector_hears_the_previous_choice_within_a_takeover_only():
+    """At a takeover's first step the selector gets ``previous=None``; later steps get the choice just made."""
+
+    class RecordingSelector(HybridActionSelector):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            self.previous = []
+
+        def select(self, observation, mentor_action, physics_action, previous=None):
+            self.previous.append(previous)
+            return super().select(observation, mentor_action, physics_action, previous)
+
+    torch.manual_seed(0)
+    selector = RecordingSelector(QEnsemble(250, 2, num_members=2, hidden=(16,)), epsilon_select=0.0,
+                                 switch_margin=float("inf"))
+    env = _env(selector=selector, physics=IDMMobilPolicy())
+    td = _rollout(env, _alternating_agent(env), 40)
+    taken, start = _flags(td, "intervention"), _flags(td, "intervention_start")
+    chosen = _flags(td, "mentor_selected")
+    assert start.sum() >= 2 and len(selector.previous) == int(taken.sum())
+    steps = taken.nonzero().squeeze(-1).tolist()
+    for heard, t in zip(selector.previous, steps):
+        if start[t]:
+            assert heard is None
+        else:
+            assert heard == bool(chosen[t - 1]) and bool(chosen[t]) == heard  # inf margin: committed
+
+
 def test_selector_and_physics_come_together():
     selector = HybridActionSelector(QEnsemble(250, 2, num_members=2, hidden=(8,)))
     with pytest.raises(ValueError, match="both selector and physics"):

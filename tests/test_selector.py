@@ -143,3 +143,40 @@ def test_tensordict_module_form():
     td1 = sel(TensorDict({"observation": torch.zeros(OBS), "mentor_action": _acts(1.0),
                           "physics_action": _acts(0.0)}, []))
     assert td1["hybrid_action"].shape == (ACT,) and td1["mentor_selected"].shape == (1,)
+
+
+@pytest.mark.parametrize("previous, advantage, chosen", [
+    (None, 0.4, False), (None, 0.5, True),     # a takeover's first step: the plain rule
+    (True, -0.4, True), (True, -0.6, False),   # on the mentor: stays until eps - margin (-0.5)
+    (False, 1.4, False), (False, 1.5, True),   # on physics: moves back only at eps + margin (1.5)
+])
+def test_switch_margin_makes_a_takeovers_choice_sticky(previous, advantage, chosen):
+    sel = HybridActionSelector(ExactQ(), epsilon_select=0.5, switch_margin=1.0)
+    _, got = sel.select(torch.zeros(OBS), _acts(advantage), _acts(0.0), previous)
+    assert got.item() is chosen
+
+
+def test_without_switch_margin_the_previous_choice_is_ignored():
+    sel = HybridActionSelector(ExactQ(), epsilon_select=0.5)
+    for previous in (None, True, False):
+        assert sel.select(torch.zeros(OBS), _acts(0.4), _acts(0.0), previous)[1].item() is False
+
+
+def test_an_infinite_switch_margin_commits_to_the_first_choice():
+    sel = HybridActionSelector(ExactQ(), epsilon_select=0.5, switch_margin=float("inf"))
+    assert sel.select(torch.zeros(OBS), _acts(-100.0), _acts(0.0), True)[1].item() is True
+    assert sel.select(torch.zeros(OBS), _acts(100.0), _acts(0.0), False)[1].item() is False
+
+
+def test_switch_margin_batched_previous():
+    sel = HybridActionSelector(ExactQ(), epsilon_select=0.0, switch_margin=1.0)
+    mentor = torch.tensor([[-0.5, 0.0], [-0.5, 0.0], [0.5, 0.0], [0.5, 0.0]])
+    previous = torch.tensor([[True], [False], [True], [False]])
+    _, chosen = sel.select(torch.zeros(4, OBS), mentor, torch.zeros(4, ACT), previous)
+    assert chosen.squeeze(-1).tolist() == [True, False, True, False]
+
+
+@pytest.mark.parametrize("margin", [-1.0, float("nan"), "1", True])
+def test_invalid_switch_margin_raises(margin):
+    with pytest.raises(ValueError, match="switch_margin"):
+        HybridActionSelector(ExactQ(), switch_margin=margin)

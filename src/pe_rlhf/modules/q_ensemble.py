@@ -161,6 +161,7 @@ def q_ensemble_from_critics(*stacks: Mapping[str, torch.Tensor], action_dim: int
     """
     if not stacks:
         raise ValueError("q_ensemble_from_critics needs at least one stack of critic parameters")
+    stacks = tuple(dict(s.items()) for s in stacks)  # plain dicts or (flattened) TensorDicts
     names = sorted(stacks[0])
     for i, stack in enumerate(stacks[1:], 1):
         if sorted(stack) != names:
