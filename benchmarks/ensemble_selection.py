@@ -52,7 +52,7 @@ class RegisteredAgent:
 
 def drive(mentor: str | None, scenes: list[int], split: str = "train", selector: HybridActionSelector | None = None,
           mentor_seed: int = 0, world: DrivingConfig | None = None, progress: str | None = None,
-          driver: str = "idm-mobil") -> dict:
+          driver: str = "idm-mobil", mentor_kwargs: dict | None = None) -> dict:
     """Episodes of ``driver`` (an evaluation policy name; IDM-MOBIL by default) under ``mentor`` (None: alone),
     the selector picking when given; a dict of rates."""
     world = world or DrivingConfig(split=split, lane_features=True)
@@ -60,7 +60,7 @@ def drive(mentor: str | None, scenes: list[int], split: str = "train", selector:
     transform = None
     if mentor is not None:
         physics = IDMMobilPolicy(PhysicsConfig()) if selector is not None else None
-        transform = InterventionTransform(make_mentor(mentor, mentor_seed), selector, physics)
+        transform = InterventionTransform(make_mentor(mentor, mentor_seed, **(mentor_kwargs or {})), selector, physics)
         env.append_transform(transform)
     agent = RegisteredAgent(env, driver)
     rows = []

@@ -199,7 +199,8 @@ def _drive(env, mentor, steps, agent_fn, seeds, record):
 
 
 def test_fatigue_degrades_the_amateur_with_controlled_steps(test_env):
-    mentor = make_mentor("amateur", seed=3, fatigue_rate=10.0)  # x3 (the cap) after 200 controlled steps
+    # x3 (the cap) after 200 controlled steps; HACO's tight belief, under which 0.8 of steering is overruled
+    mentor = make_mentor("amateur", seed=3, fatigue_rate=10.0, steer_tolerance=0.15, throttle_tolerance=0.3)
     errors = []
 
     def bad_agent(obs, env):  # 0.8 of steering away from the mentor's plan: d^2 = 28, always overruled
@@ -242,7 +243,7 @@ def test_state_dict_round_trip_mid_run(test_env):
     agent = _physics_agent()
     obs = _reset(test_env, original, 1006)
     for t in range(60):
-        action = agent(obs, test_env) + (np.array([0.9, 0.0]) if t == 55 else 0.0)  # mid-takeover at save
+        action = agent(obs, test_env) + (np.array([1.8, 0.0]) if t == 55 else 0.0)  # mid-takeover at save
         d = original.decide(test_env, action)
         obs, *_ = test_env.step(d.action if d.takeover else action)
     state = copy.deepcopy(original.state_dict())
@@ -268,3 +269,36 @@ def test_mentor_policy_evaluates_the_professional():
     assert sum(e.success for e in summary.episodes) >= 2
     assert isinstance(make_policy("adversarial", 1), MentorPolicy)
     assert isinstance(make_policy("amateur", 1).mentor, SimulatedMentor)
+
+
+# -- a mentor that steps in like a person ---------------------------------------------------------
+def test_the_default_belief_tolerates_style_that_the_tight_one_overrules():
+    agent, plan = np.array([0.5, 0.2]), np.array([0.0, 0.7])  # half a lane change early, slower
+    assert TakeoverRule(sigma=(0.15, 0.3)).unlikely(agent, plan)
+    assert not TakeoverRule().unlikely(agent, plan)
+    assert TakeoverRule().unlikely(np.array([1.0, -1.0]), np.array([-0.5, 0.6]))  # a different manoeuvre
+
+
+def test_a_stalled_car_is_taken_over_after_stall_steps(test_env):
+    _reset(test_env, make_mentor("professional"), 1000)
+    test_env.unwrapped.vehicle.speed = 0.0  # standing, as behind a broken-down vehicle
+    agent, plan = np.array([0.0, 0.0]), np.array([0.0, 0.5])  # likely, harmless, but going nowhere
+    rule = TakeoverRule(stall_steps=5)
+    fired = [rule.step(test_env, agent, plan) for _ in range(7)]
+    assert fired == [False] * 4 + [True] * 3 and rule.last_reason == "stall"
+    off = TakeoverRule(stall_steps=0)
+    assert not any(off.step(test_env, agent, plan) for _ in range(30))
+    waiting = TakeoverRule(stall_steps=5)  # the mentor would stand still too: no stall
+    assert not any(waiting.step(test_env, agent, np.array([0.0, 0.1])) for _ in range(30))
+
+
+def test_an_adversarial_seek_grabs_the_wheel(test_env):
+    mentor = make_mentor("adversarial", seed=0, danger_seeking=1.0)
+    _reset(test_env, mentor, 1000)
+    mentor.act(test_env)
+    decision = mentor.decide(test_env, mentor.last_intended.copy())  # the agent agrees with its plan
+    assert decision.takeover
+    calm = make_mentor("adversarial", seed=0, danger_seeking=1.0, seek_takes_over=False)
+    _reset(test_env, calm, 1000)
+    calm.act(test_env)
+    assert not calm.decide(test_env, calm.last_intended.copy()).takeover
