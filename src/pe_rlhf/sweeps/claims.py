@@ -1,0 +1,91 @@
+"""Claims over seeds: mean and a 95% bootstrap confidence interval per method and mentor, from a sweep's cells.
+
+``claims_summary(cells_csv)`` reads a sweep folder's ``cells.csv`` (:mod:`pe_rlhf.sweeps.summary`) and returns
+``{claim: {method: {"success": [mean, lo, hi], "test_safety": [...], "train_violations": [...],
+"takeover_usage": [...], "seeds": N}}}``, a claim being the mentor's label (``professional``,
+``adversarial``) and a method the sweep's name with ``-`` as ``_`` (``pe_rlhf``, ``haco``, ``idm_mobil``).
+``test_safety`` is ``1 - test safety violation rate``. The interval is scipy's bootstrap (BCa, 10,000
+resamples, seeded) of the mean over seeds; with one seed, or when every seed agrees, ``lo == hi == mean``.
+A metric a method does not have (IDM-MOBIL is not trained) is ``null``. Only finished cells count.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+COLUMNS = {"success": ("success_rate", False), "test_safety": ("safety_violation", True),
+           "train_violations": ("train_safety_violations", False), "takeover_usage": ("takeover_data_usage", False)}
+CONFIDENCE, RESAMPLES, SEED = 0.95, 10_000, 0
+
+
+def bootstrap_interval(values: list[float]) -> list[float] | None:
+    """``[mean, lo, hi]`` of ``values`` (a 95% bootstrap CI of the mean), or None without finite values."""
+    from scipy.stats import bootstrap
+
+    x = np.asarray([v for v in values if math.isfinite(v)], dtype=float)
+    if not len(x):
+        return None
+    mean = float(x.mean())
+    if len(x) < 2 or np.ptp(x) == 0:
+        return [mean, mean, mean]
+    method = "BCa" if len(x) >= 3 else "percentile"
+    res = bootstrap((x,), np.mean, confidence_level=CONFIDENCE, n_resamples=RESAMPLES, method=method,
+                    random_state=np.random.default_rng(SEED))
+    lo, hi = float(res.confidence_interval.low), float(res.confidence_interval.high)
+    if not (math.isfinite(lo) and math.isfinite(hi)):  # BCa degenerates on tiny samples: fall back
+        res = bootstrap((x,), np.mean, confidence_level=CONFIDENCE, n_resamples=RESAMPLES, method="percentile",
+                        random_state=np.random.default_rng(SEED))
+        lo, hi = float(res.confidence_interval.low), float(res.confidence_interval.high)
+    return [mean, lo, hi]
+
+
+def claims_summary(cells_csv: str | Path) -> dict:
+    """The summary (module docstring) of the finished cells in ``cells_csv``."""
+    rows = [r for r in csv.DictReader(open(cells_csv, newline="")) if r.get("status") == "finished"]
+    groups: dict[tuple[str, str], list[dict]] = {}
+    for r in rows:
+        groups.setdefault((r["mentor"], r["method"].replace("-", "_")), []).append(r)
+    out: dict = {}
+    for (mentor, method), members in sorted(groups.items()):
+        entry = {}
+        for name, (column, complement) in COLUMNS.items():
+            values = [float(r[column]) if r.get(column) not in (None, "", "nan") else math.nan for r in members]
+            if complement:
+                values = [1.0 - v for v in values]
+            entry[name] = bootstrap_interval(values)
+        entry["seeds"] = len(members)
+        out.setdefault(mentor, {})[method] = entry
+    return out
+
+
+def markdown_table(summary: dict) -> str:
+    """One row per claim and method: each metric as ``mean [lo, hi]``."""
+    lines = ["| claim | method | seeds | test success | test safety | training violations | takeover usage |",
+             "|---|---|---|---|---|---|---|"]
+
+    def cell(v, fmt=".2f"):
+        return "—" if v is None else f"{v[0]:{fmt}} [{v[1]:{fmt}}, {v[2]:{fmt}}]"
+
+    for claim, methods in summary.items():
+        for method, m in methods.items():
+            lines.append(f"| {claim} | {method} | {m['seeds']} | {cell(m['success'])} | {cell(m['test_safety'])} | "
+                         f"{cell(m['train_violations'], '.1f')} | {cell(m['takeover_usage'])} |")
+    return "\n".join(lines)
+
+
+def write_claims(cells_csv: str | Path, out_dir: str | Path) -> dict:
+    """``summary.json`` and ``summary.md`` in ``out_dir``; returns the summary."""
+    summary = claims_summary(cells_csv)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
+    (out_dir / "summary.md").write_text(markdown_table(summary) + "\n")
+    return summary
+
+
+__all__ = ["bootstrap_interval", "claims_summary", "markdown_table", "write_claims"]

@@ -1,0 +1,60 @@
+"""Claims over seeds: bootstrap intervals and the summary layout read from a sweep's cells.csv."""
+
+from __future__ import annotations
+
+import csv
+import json
+
+import numpy as np
+import pytest
+
+from pe_rlhf.sweeps.claims import bootstrap_interval, claims_summary, markdown_table, write_claims
+
+FIELDS = ["cell", "method", "mentor", "parameter", "seed", "status", "success_rate", "safety_violation",
+          "train_safety_violations", "takeover_data_usage"]
+
+
+def write_cells(path, rows):
+    with open(path, "w", newline="") as f:
+        w = csv.DictWriter(f, FIELDS)
+        w.writeheader()
+        for r in rows:
+            w.writerow(r)
+
+
+def row(method, mentor, seed, success, violation, train=None, usage=None, status="finished"):
+    return {"cell": f"{method}__{mentor}__s{seed}", "method": method, "mentor": mentor, "parameter": "-",
+            "seed": seed, "status": status, "success_rate": success, "safety_violation": violation,
+            "train_safety_violations": "nan" if train is None else train,
+            "takeover_data_usage": "nan" if usage is None else usage}
+
+
+def test_the_interval_brackets_the_mean_and_narrows_with_agreement():
+    wide = bootstrap_interval([0.1, 0.5, 0.9, 0.3, 0.7])
+    narrow = bootstrap_interval([0.49, 0.5, 0.51, 0.5, 0.5])
+    assert wide[1] < wide[0] < wide[2] and narrow[1] <= narrow[0] <= narrow[2]
+    assert narrow[2] - narrow[1] < wide[2] - wide[1]
+    assert wide[0] == pytest.approx(0.5)
+    assert bootstrap_interval([0.3]) == [0.3, 0.3, 0.3] == bootstrap_interval([0.3, 0.3, 0.3])
+    assert bootstrap_interval([float("nan")]) is None
+    assert bootstrap_interval([0.2, 0.4]) == bootstrap_interval([0.2, 0.4])  # seeded
+
+
+def test_the_summary_groups_by_mentor_and_method(tmp_path):
+    cells = tmp_path / "cells.csv"
+    write_cells(cells, [row("pe-rlhf", "professional", s, v, 0.1, 3 + s, 0.3) for s, v in enumerate([0.6, 0.7, 0.8])]
+                + [row("haco", "professional", 0, 0.5, 0.2, 4, 0.4),
+                   row("haco", "professional", 1, 0.9, 0.0, 1, 0.2, status="running"),
+                   row("idm-mobil", "professional", 0, 0.42, 0.02)])
+    summary = write_claims(cells, tmp_path / "out")
+    assert json.loads((tmp_path / "out" / "summary.json").read_text()) == summary
+    pe = summary["professional"]["pe_rlhf"]
+    assert pe["seeds"] == 3 and pe["success"][0] == pytest.approx(0.7) and pe["test_safety"][0] == pytest.approx(0.9)
+    assert pe["success"][1] < 0.7 < pe["success"][2]
+    assert summary["professional"]["haco"]["seeds"] == 1  # the running cell is not counted
+    idm = summary["professional"]["idm_mobil"]
+    assert idm["train_violations"] is None and idm["success"] == pytest.approx([0.42] * 3)
+    table = markdown_table(summary)
+    assert "| professional | idm_mobil | 1 | 0.42 [0.42, 0.42] | 0.98 [0.98, 0.98] | — | — |" in table
+    assert np.isfinite(pe["train_violations"]).all()
+    assert claims_summary(cells) == summary
