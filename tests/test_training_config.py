@@ -53,7 +53,7 @@ def test_defaults_load_and_validate_with_the_paper_values():
     assert (cfg.collector.learning_starts, cfg.collector.frames_per_batch, cfg.collector.warmup_steps) == (100, 100,
                                                                                                            10000)
     assert (cfg.loss.gap_coef, cfg.selector.epsilon_select, cfg.loss.psi, cfg.loss.intervention_weight) == (
-        10.0, 0.5, 1.0, 1.0)
+        10.0, 1.5, 1.0, 1.0)  # epsilon_select: the authors' code, calibrated on train scenes
     assert driving_config(cfg) == DrivingConfig(lane_features=True)  # every Table-1 row uses the lane summary
     assert driving_config(cfg).split == "train"
 

@@ -79,7 +79,7 @@ class TakeoverRule:
 
     def __init__(self, sigma=(0.6, 0.6), free_level: float = 0.95, min_span: int = 10,
                  horizon: float = 1.2, dt: float = 0.1, margin: float = 0.3, road_margin: float = 0.5,
-                 ttc_min: float = 1.5, stall_speed: float = 2.0, stall_steps: int = 20):
+                 ttc_min: float = 1.5, stall_speed: float = 2.0, stall_steps: int = 20, patience: int = 1):
         self.sigma = np.asarray(sigma, dtype=np.float64).reshape(2)
         if not np.all(self.sigma > 0):
             raise ValueError(f"sigma must be positive, got {self.sigma.tolist()}")
@@ -93,6 +93,10 @@ class TakeoverRule:
         if not (isinstance(stall_steps, int) and stall_steps >= 0):
             raise ValueError(f"stall_steps must be an integer >= 0 (0: off), got {stall_steps!r}")
         self.stall_speed, self.stall_steps = float(stall_speed), stall_steps
+        if not (isinstance(patience, int) and patience >= 1):
+            raise ValueError(f"patience must be an integer >= 1, got {patience!r}")
+        self.patience = patience
+        self.unlikely_streak = 0  # consecutive steps the agent's action was unlikely
         self.stalled = 0  # consecutive steps slower than stall_speed while the mentor's plan accelerates
         self.active = False
         self.span = 0  # steps the current takeover has lasted
@@ -101,7 +105,7 @@ class TakeoverRule:
 
     def reset(self) -> None:
         """Release control (episode start); the takeover count is kept."""
-        self.active, self.span, self.last_reason, self.stalled = False, 0, None, 0
+        self.active, self.span, self.last_reason, self.stalled, self.unlikely_streak = False, 0, None, 0, 0
 
     # -- the two tests -----------------------------------------------------------------
     def mahalanobis2(self, agent_action, mentor_action) -> float:
@@ -191,7 +195,10 @@ class TakeoverRule:
     def step(self, env, agent_action, mentor_action) -> bool:
         """Advance one env step; True while the mentor holds control."""
         agent_action = np.asarray(agent_action, dtype=np.float64).reshape(2)
-        reason = "unlikely" if self.unlikely(agent_action, mentor_action) else None
+        unlikely = self.unlikely(agent_action, mentor_action)
+        self.unlikely_streak = self.unlikely_streak + 1 if unlikely else 0
+        # while in control any unlikely action keeps it; to take over, it must have lasted `patience` steps
+        reason = "unlikely" if unlikely and (self.active or self.unlikely_streak >= self.patience) else None
         if reason is None:
             reason = self.danger(env, agent_action, mentor_action)
         if reason is None and self._stalls(env, agent_action, mentor_action):
