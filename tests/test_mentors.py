@@ -302,3 +302,23 @@ def test_an_adversarial_seek_grabs_the_wheel(test_env):
     _reset(test_env, calm, 1000)
     calm.act(test_env)
     assert not calm.decide(test_env, calm.last_intended.copy()).takeover
+
+
+@pytest.mark.parametrize("adopt", [True, False])
+def test_a_lane_change_the_mentor_did_not_plan_becomes_its_plan(test_env, adopt):
+    from pe_rlhf.envs.geometry import LANE_WIDTH
+    from pe_rlhf.mentors.driver import DriverParams, PrivilegedDriver
+    from pe_rlhf.physics.perception import ego_lane_slot
+
+    driver = PrivilegedDriver(DriverParams(adopt_lane=adopt))
+    test_env.reset(options={"scene_seed": 1000})
+    env = test_env.unwrapped
+    driver(env)
+    before, _ = ego_lane_slot(env)
+    other = before + 1 if before + 1 < env.route.lanes else before - 1
+    lane = env.road.network.get_lane((*env.route.segments[env.route_segment], before))
+    s, _ = lane.local_coordinates(env.vehicle.position)
+    env.vehicle.position = lane.position(s, (other - before) * LANE_WIDTH)  # the agent moved it one lane over
+    assert ego_lane_slot(env)[0] == other
+    driver(env)
+    assert driver.target_lane == (other if adopt else before)

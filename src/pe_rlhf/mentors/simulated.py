@@ -209,6 +209,7 @@ class SimulatedMentor(Mentor):
             "queue": [a.tolist() for a in self._queue],
             "manoeuvre": None if self._manoeuvre is None else dict(self._manoeuvre),
             "target_lane": self.driver.target_lane,
+            "last_slot": self.driver._last_slot,
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -223,6 +224,7 @@ class SimulatedMentor(Mentor):
         self._queue.extend(np.asarray(a, dtype=np.float32) for a in state["queue"])
         self._manoeuvre = None if state["manoeuvre"] is None else dict(state["manoeuvre"])
         self.driver.target_lane = state["target_lane"]
+        self.driver._last_slot = state.get("last_slot")
         self._resume = True
 
     # -- one step ------------------------------------------------------------------------
