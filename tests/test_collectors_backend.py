@@ -109,7 +109,7 @@ def test_invalid_backend_combinations_name_the_field():
 
 
 def test_ray_kwargs_and_ensemble_push_without_ray(monkeypatch):
-    cfg = load_config(overrides=MULTISYNC)
+    cfg = load_config(overrides=MULTISYNC + ["selector.value=warmup"])  # two fresh ensembles differ until pushed
     ensemble, actor = builders.build_q_ensemble(cfg), builders.build_actor(cfg)
     factories = [functools.partial(builders.make_worker_env, cfg, worker_index=i, num_workers=2) for i in range(2)]
     kwargs = builders.ray_collector_kwargs(cfg, factories, actor, TOTAL_FRAMES, ensemble)
@@ -124,7 +124,7 @@ def test_ray_kwargs_and_ensemble_push_without_ray(monkeypatch):
     remote = types.SimpleNamespace(cascade_execute=types.SimpleNamespace(remote=worker.cascade_execute))
     monkeypatch.setitem(sys.modules, "ray", types.SimpleNamespace(get=lambda futures: futures))
     builders.push_ensemble_weights(types.SimpleNamespace(remote_collectors=[remote]), ensemble)
-    obs, act = torch.randn(3, builders.OBS_DIM), torch.rand(3, 2) * 2 - 1
+    obs, act = torch.randn(3, builders.obs_dim(cfg)), torch.rand(3, 2) * 2 - 1
     torch.testing.assert_close(worker_ensemble.values(obs, act), ensemble.values(obs, act))
     worker.shutdown()
 

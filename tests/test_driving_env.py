@@ -26,7 +26,7 @@ from pe_rlhf.envs.driving_env import CRASH_PENALTY, OUT_OF_ROAD_PENALTY, SUCCESS
 from pe_rlhf.envs.observation import EDGE_SCALE, NAV_SCALE, OBS_SLICES, V_MAX, build_observation
 from pe_rlhf.envs.scene import EGO_SPEED, EGO_START
 from pe_rlhf.envs.traffic import BrokenDownCar
-from pe_rlhf.physics.policy import IDMMobilPolicy
+from pe_rlhf.physics.policy import IDMMobilPolicy, PhysicsConfig
 
 INFO_KEYS = (
     "cost", "success", "crash_vehicle", "crash_object", "out_of_road", "route_completion",
@@ -65,7 +65,7 @@ def _check_info(info: dict, env) -> None:
 
 def _run_idm(env, seed: int, max_steps: int = 1000) -> list[dict]:
     """Drive ``seed`` with the IDM-MOBIL policy; one record per step (and the reset)."""
-    policy = IDMMobilPolicy()
+    policy = IDMMobilPolicy(PhysicsConfig(stop_for_obstacles=False))  # the blind variant: it meets obstacles
     obs, info = env.reset(options={"scene_seed": seed})
     records = [dict(obs=obs, info=info, speed=env.vehicle.speed, progress=env.progress)]
     for _ in range(max_steps):

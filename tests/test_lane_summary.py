@@ -63,8 +63,8 @@ def test_config_field_is_validated_and_sizes_the_networks():
         DrivingConfig(lane_features="yes")
     with pytest.raises(ConfigError, match="lane_features"):
         load_config(None, ["env.lane_features=maybe"])
-    assert builders.obs_dim(load_config(None, ["env.lane_features=true"])) == 270
-    assert builders.obs_dim(load_config(None, [])) == 250
+    assert builders.obs_dim(load_config(None, ["env.lane_features=false"])) == 250
+    assert builders.obs_dim(load_config(None, [])) == 270  # the recipes' default world has the lane summary
 
 
 def test_evaluate_checkpoint_uses_the_runs_world(tmp_path):

@@ -86,8 +86,8 @@ def _learner_parts(rows: int = 64):
     g = torch.Generator().manual_seed(0)
     agent = torch.rand(rows, 2, generator=g) * 2 - 1
     intervention = torch.rand(rows, 1, generator=g) < 0.3
-    replay.extend(make_transitions(torch.rand(rows, builders.OBS_DIM, generator=g),
-                                   torch.rand(rows, builders.OBS_DIM, generator=g), agent,
+    replay.extend(make_transitions(torch.rand(rows, builders.obs_dim(cfg), generator=g),
+                                   torch.rand(rows, builders.obs_dim(cfg), generator=g), agent,
                                    torch.where(intervention, -agent, agent), intervention, intervention,
                                    torch.zeros(rows, 1, dtype=torch.bool)))
     return actor, loss, soft_update, optimizers, replay
@@ -112,7 +112,8 @@ def test_background_updater_keeps_the_update_to_data_ratio(one_thread):
         time.sleep(0.1)
         assert updater.updates_done == 5  # never ahead of the data
         assert set(updater.latest_losses()) >= {"loss_qvalue", "loss_actor"}
-        acted = updater.policy(TensorDict({"observation": torch.zeros(builders.OBS_DIM)}))
+        width = builders.obs_dim(load_config(overrides=["profile=smoke"]))
+        acted = updater.policy(TensorDict({"observation": torch.zeros(width)}))
         assert acted.get("action").shape == (2,)
         updater.notify_frames(27)  # 37 frames: floor(18.5) updates
     assert updater.updates_done == 18  # stop (leaving the block) runs the owed updates first

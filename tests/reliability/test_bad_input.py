@@ -49,7 +49,9 @@ def test_observation_size_follows_the_env_config():
     from pe_rlhf.training import builders
     from pe_rlhf.training.config import driving_config
 
-    cfg = load_config(overrides=["profile=smoke", "env.lidar_beams=60"])
+    # the packaged value expert reads the default 270-float observation: a fitted ensemble follows any world
+    cfg = load_config(overrides=["profile=smoke", "env.lidar_beams=60", "env.lane_features=false",
+                                 "selector.value=warmup"])
     env = make_env(driving_config(cfg))
     assert builders.obs_dim(cfg) == env.observation_spec["observation"].shape[-1] == 70
     td = builders.build_actor(cfg)(env.reset())
@@ -78,8 +80,8 @@ def test_resuming_under_another_env_config_is_refused_naming_the_fields(finished
 
 
 def test_resuming_with_other_network_sizes_is_refused_naming_the_tensor(finished_run):
-    with pytest.raises(ValueError, match=r"module 'loss' key '.*': checkpoint shape \(32, 250\), module shape "
-                                         r"\(16, 250\)"):
+    with pytest.raises(ValueError, match=r"module 'loss' key '.*': checkpoint shape \(32, 270\), module shape "
+                                         r"\(16, 270\)"):
         train(finished_run, "loss.hidden=[16,16]", resume=True)
 
 
