@@ -45,7 +45,7 @@ def test_the_summary_groups_by_mentor_and_method(tmp_path):
     write_cells(cells, [row("pe-rlhf", "professional", s, v, 0.1, 3 + s, 0.3) for s, v in enumerate([0.6, 0.7, 0.8])]
                 + [row("haco", "professional", 0, 0.5, 0.2, 4, 0.4),
                    row("haco", "professional", 1, 0.9, 0.0, 1, 0.2, status="running"),
-                   row("idm-mobil", "professional", 0, 0.42, 0.02)])
+                   row("idm-mobil", "-", 0, 0.42, 0.02), row("pe-rlhf", "adversarial", 0, 0.3, 0.2, 5, 0.3)])
     summary = write_claims(cells, tmp_path / "out")
     assert json.loads((tmp_path / "out" / "summary.json").read_text()) == summary
     pe = summary["professional"]["pe_rlhf"]
@@ -54,6 +54,7 @@ def test_the_summary_groups_by_mentor_and_method(tmp_path):
     assert summary["professional"]["haco"]["seeds"] == 1  # the running cell is not counted
     idm = summary["professional"]["idm_mobil"]
     assert idm["train_violations"] is None and idm["success"] == pytest.approx([0.42] * 3)
+    assert summary["adversarial"]["idm_mobil"] == idm and "-" not in summary  # beside every claim
     table = markdown_table(summary)
     assert "| professional | idm_mobil | 1 | 0.42 [0.42, 0.42] | 0.98 [0.98, 0.98] | — | — |" in table
     assert np.isfinite(pe["train_violations"]).all()

@@ -4,7 +4,8 @@
 ``{claim: {method: {"success": [mean, lo, hi], "test_safety": [...], "train_violations": [...],
 "takeover_usage": [...], "seeds": N}}}``, a claim being the mentor's label (``professional``,
 ``adversarial``) and a method the sweep's name with ``-`` as ``_`` (``pe_rlhf``, ``haco``, ``idm_mobil``).
-``test_safety`` is ``1 - test safety violation rate``. The interval is scipy's bootstrap (BCa, 10,000
+An evaluation-only method (IDM-MOBIL: mentor ``-`` in the cells) joins every claim. ``test_safety`` is
+``1 - test safety violation rate``. The interval is scipy's bootstrap (BCa, 10,000
 resamples, seeded) of the mean over seeds; with one seed, or when every seed agrees, ``lo == hi == mean``.
 A metric a method does not have (IDM-MOBIL is not trained) is ``null``. Only finished cells count.
 """
@@ -21,6 +22,7 @@ import numpy as np
 COLUMNS = {"success": ("success_rate", False), "test_safety": ("safety_violation", True),
            "train_violations": ("train_safety_violations", False), "takeover_usage": ("takeover_data_usage", False)}
 CONFIDENCE, RESAMPLES, SEED = 0.95, 10_000, 0
+NO_MENTOR = "-"  # the mentor column of an evaluation-only cell
 
 
 def bootstrap_interval(values: list[float]) -> list[float] | None:
@@ -50,6 +52,12 @@ def claims_summary(cells_csv: str | Path) -> dict:
     groups: dict[tuple[str, str], list[dict]] = {}
     for r in rows:
         groups.setdefault((r["mentor"], r["method"].replace("-", "_")), []).append(r)
+    claims = sorted({mentor for mentor, _ in groups if mentor != NO_MENTOR})
+    for (mentor, method), members in list(groups.items()):
+        if mentor == NO_MENTOR:  # evaluation-only: the same numbers stand beside every claim
+            del groups[(mentor, method)]
+            for claim in claims:
+                groups.setdefault((claim, method), members)
     out: dict = {}
     for (mentor, method), members in sorted(groups.items()):
         entry = {}
