@@ -1,0 +1,29 @@
+"""``benchmarks/ensemble_selection.py``: importable, and the hybrid's extremes are the mentor's and physics'."""
+
+from __future__ import annotations
+
+import pytest
+from _scripts import load_script
+
+
+@pytest.fixture(scope="module")
+def bench():
+    return load_script("benchmarks/ensemble_selection.py")
+
+
+def test_extreme_thresholds_execute_the_mentor_or_physics(bench, tmp_path):
+    rows = bench.main(["--mentors", "professional", "--scenes", "0-2", "--epsilons", "-1000000", "1000000",
+                       "--json", str(tmp_path / "floor.json")])
+    by_row = {r["row"]: r for r in rows}
+    alone, as_is = by_row["idm-mobil"], by_row["as-is"]
+    always_mentor, always_physics = by_row["hybrid eps=-1e+06 margin=none"], by_row["hybrid eps=1e+06 margin=none"]
+    assert alone["takeover_share"] == 0 and as_is["takeover_share"] > 0 and as_is["mentor_share"] == 1.0
+    assert always_mentor["mentor_share"] == 1.0 and always_physics["mentor_share"] == 0.0
+    # executing the mentor at every takeover step is the as-is run, step for step
+    assert always_mentor["per_episode"] == as_is["per_episode"]
+    assert (tmp_path / "floor.json").exists()
+
+
+def test_takeover_rates_watch_each_driver(bench):
+    (row,) = bench.takeover_rates(["professional"], ["random"], [0])
+    assert row["driver"] == "random" and 0.5 < row["takeover_share"] <= 1.0 and row["mentor_share"] == 1.0
