@@ -32,7 +32,7 @@ from pe_rlhf.envs import DrivingConfig, scene_seeds
 from pe_rlhf.envs.torchrl_env import make_env, unwrap
 from pe_rlhf.evaluation.policies import make_policy
 from pe_rlhf.mentors import make_mentor
-from pe_rlhf.physics import IDMMobilPolicy, PhysicsConfig
+from pe_rlhf.physics import IDMMobilPolicy, PhysicsConfig, SafetyForecastValue
 from pe_rlhf.training.value_expert import load_value_expert, parse_value_source
 from pe_rlhf.transforms import HybridActionSelector, InterventionTransform
 
@@ -99,10 +99,10 @@ def measure(mentors: list[str], scenes: list[int], split: str, value: str, epsil
     """Every row (see the module docstring) for every mentor, IDM-MOBIL alone once."""
     world = DrivingConfig(split=split, lane_features=True)
     kind, path = parse_value_source(value)
-    if kind != "expert":
-        raise SystemExit("--value: only an expert (expert or expert:PATH) is frozen before training; a warm-up "
-                         "ensemble exists only inside a run")
-    ensemble = load_value_expert(path, world_obs_dim(world))
+    if kind == "warmup":
+        raise SystemExit("--value: a warm-up ensemble exists only inside a run; use expert, expert:PATH or "
+                         "forecast")
+    ensemble = SafetyForecastValue() if kind == "forecast" else load_value_expert(path, world_obs_dim(world))
     results = [{"mentor": None, "row": "idm-mobil", **drive(None, scenes, split, world=world, progress="idm-mobil")}]
     for mentor in mentors:
         results.append({"mentor": mentor, "row": "as-is",
@@ -156,7 +156,7 @@ def main(argv=None) -> list[dict]:
     parser.add_argument("--mentors", nargs="+", default=["professional", "adversarial"])
     parser.add_argument("--split", choices=["train", "test"], default="train")
     parser.add_argument("--scenes", default="0-19", help="a range of the split's scene seeds (train 0-..., test 1000-...)")
-    parser.add_argument("--value", default="expert", help="selector.value: expert | expert:PATH")
+    parser.add_argument("--value", default="expert", help="selector.value: expert | expert:PATH | forecast")
     parser.add_argument("--epsilons", type=float, nargs="+", default=[0.5, 1.5])
     parser.add_argument("--switch-margins", type=margin_arg, nargs="+", default=[None], help="none, a number, or inf")
     parser.add_argument("--variance-threshold", type=float, default=None)

@@ -108,7 +108,8 @@ def measure(run: Path | str, args, setup=None) -> dict:
                 a_mentor = np.asarray(a_mentor, np.float32)
                 a_phy = np.asarray(physics(env), np.float32)  # the run's physics policy (its physics.* flags)
                 with torch.no_grad():
-                    q = ensemble.values(torch.as_tensor(np.stack([obs, obs])), torch.as_tensor(np.stack([a_mentor, a_phy])))
+                    pair = (torch.as_tensor(np.stack([obs, obs])), torch.as_tensor(np.stack([a_mentor, a_phy])))
+                    q = ensemble.values(*pair, env=env) if getattr(ensemble, "needs_env", False) else ensemble.values(*pair)
                 advantage = float((q[:, 0] - q[:, 1]).mean())
                 seen += 1
                 if seen % args.every == 0:  # label every k-th takeover state: more scenes for the same cost
@@ -147,7 +148,7 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("runs", nargs="*", type=Path)
     parser.add_argument("--mentors", nargs="+", default=None, help="no run folder: these mentors with --value")
-    parser.add_argument("--value", default="expert", help="selector.value with --mentors (expert | expert:PATH)")
+    parser.add_argument("--value", default="expert", help="selector.value with --mentors (expert | expert:PATH | forecast)")
     parser.add_argument("--scenes", type=parse_scenes, default=parse_scenes("0-19"), help="train scene seeds, e.g. 0-19")
     parser.add_argument("--hold", type=int, default=10, help="steps each candidate drives before the oracle does")
     parser.add_argument("--horizon", type=int, default=40, help="steps of each counterfactual rollout")

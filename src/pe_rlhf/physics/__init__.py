@@ -31,3 +31,7 @@ __all__ = [
 from pe_rlhf.physics.policy import IDMMobilPolicy, PhysicsConfig  # noqa: E402
 
 __all__ += ["IDMMobilPolicy", "PhysicsConfig"]
+
+from pe_rlhf.physics.safety import SafetyForecastConfig, SafetyForecastValue, time_to_failure  # noqa: E402
+
+__all__ += ["SafetyForecastConfig", "SafetyForecastValue", "time_to_failure"]

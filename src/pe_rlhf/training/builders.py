@@ -41,7 +41,7 @@ from pe_rlhf.envs.torchrl_env import make_env
 from pe_rlhf.mentors import Mentor, make_mentor
 from pe_rlhf.modules import QEnsemble, make_actor, make_qvalue
 from pe_rlhf.objectives import PERLHFLoss
-from pe_rlhf.physics import IDMMobilPolicy
+from pe_rlhf.physics import IDMMobilPolicy, SafetyForecastValue
 from pe_rlhf.transforms import (
     HybridActionSelector,
     InterventionTransform,
@@ -122,10 +122,13 @@ def value_is_fitted(cfg) -> bool:
 
 def build_q_ensemble(cfg) -> QEnsemble | None:
     """The selector's value estimator: a fresh ensemble to fit on the warm-up, or the frozen expert that
-    ``selector.value`` names (at most ``selector.num_members`` of its members), or None without a selector."""
+    ``selector.value`` names (at most ``selector.num_members`` of its members), the physics forecast
+    (``forecast``: seconds until a failure, nothing to fit), or None without a selector."""
     if not cfg.selector.enabled:
         return None
     kind, path = parse_value_source(cfg.selector.value)
+    if kind == "forecast":
+        return SafetyForecastValue()
     if kind == "expert":
         return load_value_expert(path, obs_dim(cfg), max_members=int(cfg.selector.num_members))
     return QEnsemble(obs_dim(cfg), num_members=int(cfg.selector.num_members), hidden=tuple(cfg.selector.hidden))

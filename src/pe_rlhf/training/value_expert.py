@@ -26,7 +26,7 @@ import torch
 
 from pe_rlhf.modules import QEnsemble, load_q_ensemble, q_ensemble_from_critics, save_q_ensemble
 
-VALUE_SOURCES = ("expert", "expert:PATH", "warmup")
+VALUE_SOURCES = ("expert", "expert:PATH", "warmup", "forecast")
 PACKAGED_EXPERT = "value_expert.pt"
 PROVENANCE_SUFFIX = ".json"
 CRITIC_PREFIXES = ("qvalue_network_params.", "target_qvalue_network_params.")
@@ -38,11 +38,12 @@ def packaged_expert_path() -> Path:
 
 
 def parse_value_source(text: str) -> tuple[str, Path | None]:
-    """``("warmup", None)``, ``("expert", None)`` (the packaged expert) or ``("expert", PATH)``; a ``ValueError``
-    naming the allowed forms otherwise."""
+    """``("warmup", None)``, ``("expert", None)`` (the packaged expert), ``("expert", PATH)`` or
+    ``("forecast", None)`` (the physics forecast, :class:`~pe_rlhf.physics.SafetyForecastValue`); a
+    ``ValueError`` naming the allowed forms otherwise."""
     text = str(text).strip()
-    if text == "warmup":
-        return "warmup", None
+    if text in ("warmup", "forecast"):
+        return text, None
     if text == "expert":
         return "expert", None
     if text.startswith("expert:") and text[len("expert:"):].strip():

@@ -127,7 +127,7 @@ class InterventionTransform(Transform):
                 physics_action = np.asarray(self.physics(env), dtype=np.float32)
                 previous = self._previous_choice if self._in_takeover else None
                 hybrid, chosen = self.selector.select(observation, torch.as_tensor(mentor_action),
-                                                      torch.as_tensor(physics_action), previous)
+                                                      torch.as_tensor(physics_action), previous, env=env)
                 executed, mentor_selected = hybrid.numpy().astype(np.float32), bool(chosen.item())
         show = getattr(self.mentor, "show_control", None)
         if show is not None and takeover and not warmup:  # a person's window shows who drives now

@@ -19,10 +19,19 @@ class HybridActionSelector(TensorDictModuleBase):
     writes ``hybrid_action`` ``(*B, A)`` and ``mentor_selected`` bool ``(*B, 1)``. Batched: the
     ensemble runs once on both actions (``2 * B`` rows, one vectorised call).
 
+    The value source ``q_ensemble`` is a :class:`~pe_rlhf.modules.QEnsemble` (``values(obs, acts) -> (K, N)``)
+    or any module with ``needs_env = True`` and ``values(obs, acts, env=) -> (K, N)`` that forecasts from the
+    simulator (:class:`~pe_rlhf.physics.SafetyForecastValue`: seconds until a failure; ``epsilon_select`` is
+    then a time). ``forward`` on a tensordict serves the first kind only (it has no simulator).
+
     A non-finite action (NaN/inf entries) is never chosen over a finite one, whatever the ensemble says.
 
-    ``epsilon_select`` defaults to the paper's table (0.5); the authors' code uses 1.5. A negative value
-    trusts the mentor unless physics is valued ``-epsilon_select`` above it (physics as a veto).
+    ``epsilon_select`` defaults to the paper's table (0.5); the authors' code uses 1.5. Any finite value is
+    meaningful, in the value source's units: > 0, the mentor must be valued at least that much above physics
+    (doubt favours physics); 0, the higher-valued action wins (a tie keeps the mentor); < 0, the mentor is
+    trusted unless physics is valued ``-epsilon_select`` above it (physics as a veto). Past the advantages
+    the value source produces, either way, the choice stops depending on the state: always physics (large
+    positive) or always the mentor (large negative).
     ``variance_threshold`` (off by default) reproduces that code's escape: the mentor is also
     trusted when the ensemble's standard deviation on the physics action exceeds it (the
     estimator does not know that action well enough to overrule the person).
@@ -37,7 +46,7 @@ class HybridActionSelector(TensorDictModuleBase):
 
     def __init__(
         self,
-        q_ensemble: QEnsemble,
+        q_ensemble: QEnsemble | torch.nn.Module,
         epsilon_select: float = 0.5,
         variance_threshold: float | None = None,
         switch_margin: float | None = None,
@@ -68,16 +77,23 @@ class HybridActionSelector(TensorDictModuleBase):
 
     @torch.no_grad()
     def select(self, observation: torch.Tensor, mentor_action: torch.Tensor,
-               physics_action: torch.Tensor, previous: torch.Tensor | bool | None = None
+               physics_action: torch.Tensor, previous: torch.Tensor | bool | None = None, env=None
                ) -> tuple[torch.Tensor, torch.Tensor]:
         """``(hybrid_action (*B, A), mentor_selected (*B, 1) bool)`` for plain tensors.
 
         ``previous``: the choice at the previous step of the same takeover (bool, or ``(*B, 1)`` /
-        ``(*B,)`` bool; None at a takeover's start); used only with ``switch_margin``."""
+        ``(*B,)`` bool; None at a takeover's start); used only with ``switch_margin``. ``env``: the
+        simulator, for a value source that forecasts from it (``needs_env``, e.g.
+        :class:`~pe_rlhf.physics.SafetyForecastValue`); unbatched then."""
         obs = torch.cat([observation, observation], 0) if observation.dim() > 1 else torch.stack([observation] * 2)
         acts = torch.cat([mentor_action, physics_action], 0) if mentor_action.dim() > 1 else torch.stack(
             [mentor_action, physics_action])
-        q = self.q_ensemble.values(obs, acts)  # (K, 2B) or (K, 2)
+        if getattr(self.q_ensemble, "needs_env", False):
+            if env is None:
+                raise ValueError(f"{type(self.q_ensemble).__name__} forecasts from the simulator: pass select(..., env=)")
+            q = self.q_ensemble.values(obs, acts, env=env)  # (1, 2)
+        else:
+            q = self.q_ensemble.values(obs, acts)  # (K, 2B) or (K, 2)
         q_mentor, q_phy = q.chunk(2, dim=1)
         advantage = (q_mentor - q_phy).mean(0)
         chosen = advantage >= self.epsilon_select

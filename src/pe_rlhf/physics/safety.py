@@ -1,0 +1,144 @@
+"""A physics forecast of what an action leads to: seconds until a crash or leaving the road.
+
+The value estimator of the hybrid selector must know that an action is *bad*, and a value fitted on
+crash-free driving (or an expert's critics, which assume the expert's own continuation) does not. This
+module predicts it from the vehicle model instead: the ego, a kinematic bicycle (the same equations as the
+simulator's ``highway_env`` vehicle), holds the candidate action for ``hold`` seconds, then recovers as well
+as a car can (full braking, steering back along the route); road users ahead keep their velocity and static
+obstacles stay. The candidate *fails* at the first forecast instant its body overlaps one of them or its
+centre leaves the road (the env's own ``is_on_road`` test and edge margin).
+
+:func:`time_to_failure` returns that instant in seconds (``horizon`` when nothing fails), so larger is
+safer and a failure now is worth the least. :class:`SafetyForecastValue` scores a batch of actions with it
+for :class:`~pe_rlhf.transforms.HybridActionSelector` (``selector.value=forecast``): the mentor's action
+is executed unless it fails sooner than physics' by ``epsilon_select`` seconds or more.
+
+It reads the simulator's true state (privileged), as the physics policy and the simulated mentors do.
+Road users behind the ego are ignored: they are drivers who brake for it, which a constant-velocity
+forecast would not know.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from highway_env import utils
+
+from pe_rlhf.envs.action import MAX_BRAKING, MAX_STEERING, action_to_controls
+
+ROAD_EDGE_MARGIN = 1.0  # [m] as the env: the ego centre may pass the edge line by this much
+NEAR = 60.0  # [m] road users farther than this cannot be reached within a forecast
+RECOVERY_STEERING_GAIN = 1.5  # [rad of wheel angle per rad of heading error] while recovering
+
+
+@dataclass(frozen=True)
+class SafetyForecastConfig:
+    """``hold`` [s]: the candidate action is held this long; ``horizon`` [s]: the forecast's length;
+    ``dt`` [s]: its integration step; ``recovery_braking`` [m/s^2]: deceleration after ``hold``."""
+
+    hold: float = 1.0
+    horizon: float = 3.0
+    dt: float = 0.1
+    recovery_braking: float = MAX_BRAKING
+
+    def __post_init__(self) -> None:
+        for name in ("hold", "horizon", "dt", "recovery_braking"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) \
+                    or value < 0:
+                raise ValueError(f"SafetyForecastConfig.{name}={value!r} must be a finite number >= 0")
+        if self.dt <= 0 or self.horizon <= 0:
+            raise ValueError(f"SafetyForecastConfig dt={self.dt!r} and horizon={self.horizon!r} must be > 0")
+
+
+def _others(env) -> list[tuple[np.ndarray, np.ndarray, float, float, float]]:
+    """``(position, velocity, heading, length, width)`` of the road users that can matter: static objects
+    near the ego, and vehicles near it and ahead of it."""
+    ego = env.vehicle
+    forward = np.array([math.cos(ego.heading), math.sin(ego.heading)])
+    out = []
+    for obj in list(env.road.vehicles) + list(env.road.objects):
+        if obj is ego:
+            continue
+        rel = np.asarray(obj.position, float) - ego.position
+        if np.linalg.norm(rel) > NEAR:
+            continue
+        speed = float(getattr(obj, "speed", 0.0))
+        if speed > 0.1 and rel @ forward < 0:  # a driver behind: it brakes for us
+            continue
+        velocity = speed * np.array([math.cos(obj.heading), math.sin(obj.heading)])
+        out.append((np.asarray(obj.position, float), velocity, float(obj.heading), float(obj.LENGTH),
+                    float(obj.WIDTH)))
+    return out
+
+
+def time_to_failure(env, action, config: SafetyForecastConfig | None = None) -> float:
+    """Seconds until ``action`` (normalised ``[steering, throttle]``), held ``config.hold`` s and followed by
+    the best recovery, makes the ego of ``env`` (a ``DrivingEnv``, or a wrapper of one) hit a road user or
+    leave the road; ``config.horizon`` when it does neither. 0.0 when the ego already has."""
+    config = config or SafetyForecastConfig()
+    env = getattr(env, "unwrapped", env)
+    ego = env.vehicle
+    steering, accel = action_to_controls(action)
+    position, heading, speed = np.array(ego.position, float), float(ego.heading), float(ego.speed)
+    half = ego.LENGTH / 2
+    others = _others(env)
+    network, route = env.road.network, env.route
+    segment = env.route_segment
+    steps = int(round(config.horizon / config.dt))
+    for i in range(1, steps + 1):
+        t = i * config.dt
+        if t > config.hold + 1e-9:  # recovery: brake, steer back along the route
+            segment, _ = route.project(position, segment)
+            error = utils.wrap_to_pi(route.heading_at(position, segment) - heading)
+            steering = float(np.clip(RECOVERY_STEERING_GAIN * error, -MAX_STEERING, MAX_STEERING))
+            accel = -config.recovery_braking
+        beta = math.atan(0.5 * math.tan(steering))
+        position = position + speed * np.array([math.cos(heading + beta), math.sin(heading + beta)]) * config.dt
+        heading += speed * math.sin(beta) / half * config.dt
+        speed = min(max(speed + accel * config.dt, 0.0), float(getattr(ego, "MAX_SPEED", 40.0)))
+        if not network.is_on_road(position, ROAD_EDGE_MARGIN):
+            return t
+        ego_box = (position, ego.LENGTH, ego.WIDTH, heading)
+        for pos, vel, head, length, width in others:
+            other = pos + vel * t
+            if np.linalg.norm(other - position) > (length + ego.LENGTH) / 2 + (width + ego.WIDTH) / 2:
+                continue
+            if utils.are_polygons_intersecting(utils.rect_corners(*ego_box[:3], ego_box[3]),
+                                               utils.rect_corners(other, length, width, head),
+                                               np.zeros(2), np.zeros(2))[0]:
+                return t
+        if speed <= 0.0 and t > config.hold:
+            return config.horizon  # stopped on the road, clear of everything: nothing more can happen
+    return config.horizon
+
+
+class SafetyForecastValue(torch.nn.Module):
+    """A value source for :class:`~pe_rlhf.transforms.HybridActionSelector` from the physics forecast.
+
+    ``values(observation, actions, env=env)`` returns ``(1, N)`` float32: :func:`time_to_failure` of each of
+    the ``N`` actions ``(N, 2)`` from the current state of ``env`` (the observation is not read: the
+    forecast reads the simulator). The selector's advantage is then seconds of safety, and
+    ``epsilon_select`` a time: the mentor is trusted unless its action fails that much sooner than
+    physics'. ``needs_env`` tells the selector to pass the simulator. A module without parameters, so
+    checkpoints and weight pushes treat it as any value source.
+    """
+
+    needs_env = True
+
+    def __init__(self, config: SafetyForecastConfig | None = None):
+        super().__init__()
+        self.config = config or SafetyForecastConfig()
+
+    def values(self, observation: torch.Tensor, actions: torch.Tensor, env=None) -> torch.Tensor:
+        if env is None:
+            raise ValueError("SafetyForecastValue.values needs env= (the simulator to forecast from)")
+        acts = actions.reshape(-1, actions.shape[-1]).detach().cpu().numpy()
+        out = [time_to_failure(env, a, self.config) if np.all(np.isfinite(a)) else 0.0 for a in acts]
+        return torch.tensor([out], dtype=torch.float32)
+
+
+__all__ = ["SafetyForecastConfig", "SafetyForecastValue", "time_to_failure"]

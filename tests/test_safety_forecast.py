@@ -1,0 +1,115 @@
+"""The physics forecast (``pe_rlhf.physics.safety``): seconds until an action leads to a crash or off the road,
+checked against the real simulator, and as the hybrid selector's value source (``selector.value=forecast``)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from pe_rlhf.physics import SafetyForecastConfig, SafetyForecastValue, time_to_failure
+from pe_rlhf.training.builders import build_q_ensemble, build_selector
+from pe_rlhf.training.config import load_config
+from pe_rlhf.training.value_expert import parse_value_source
+from pe_rlhf.transforms import HybridActionSelector
+from test_physics_policy import add_obstacle, straight_env
+
+THROTTLE = np.array([0.0, 1.0], np.float32)
+BRAKE = np.array([0.0, -1.0], np.float32)
+COAST = np.array([0.0, 0.0], np.float32)
+
+
+def at_speed(speed: float, obstacle_ahead: float | None = None):
+    """The empty straight road, the ego at ``speed`` [m/s] in the middle lane; an obstacle ``obstacle_ahead``
+    metres (centre to centre) ahead in its lane when given."""
+    env = straight_env(scene_seed=0)
+    env.vehicle.speed = speed
+    if obstacle_ahead is not None:
+        add_obstacle(env, env.progress + obstacle_ahead, lane=1)
+    return env
+
+
+def test_nothing_in_the_way_is_worth_the_whole_horizon():
+    env = at_speed(15.0)
+    for action in (COAST, THROTTLE, BRAKE):
+        assert time_to_failure(env, action) == pytest.approx(3.0)
+
+
+def test_steering_hard_at_speed_leaves_the_road_within_the_hold():
+    env = at_speed(15.0)
+    for side in (-1.0, 1.0):
+        ttf = time_to_failure(env, np.array([side, 0.0], np.float32))
+        assert 0.0 < ttf <= 1.0 + 1e-9  # held for 1 s it is off a 3-lane road before any recovery starts
+    gentle = time_to_failure(env, np.array([0.05, 0.0], np.float32))
+    assert gentle == pytest.approx(3.0)  # a lane-keeping correction, then the recovery, stays on the road
+
+
+def test_the_forecast_tells_braking_in_time_from_driving_on():
+    env = at_speed(15.0, obstacle_ahead=40.0)  # stopping from 15 m/s takes 18.75 m at 6 m/s^2
+    assert time_to_failure(env, BRAKE) == pytest.approx(3.0)
+    assert time_to_failure(env, THROTTLE) < 3.0  # 1 s of full throttle first: too late to stop
+    short = SafetyForecastConfig(hold=0.0)
+    assert time_to_failure(env, THROTTLE, short) == pytest.approx(3.0)  # no hold: it is the recovery only
+
+
+def test_the_forecast_crash_time_matches_the_simulator():
+    """Held for the whole horizon (no recovery), the forecast's crash instant is the simulator's."""
+    env = at_speed(12.0, obstacle_ahead=30.0)
+    config = SafetyForecastConfig(hold=3.0, horizon=3.0)
+    forecast = time_to_failure(env, THROTTLE, config)
+    assert forecast < 3.0
+    steps = 0
+    while True:
+        _, _, terminated, truncated, info = env.step(THROTTLE)
+        steps += 1
+        if terminated or truncated:
+            break
+    assert info["crash_object"]
+    assert forecast == pytest.approx(steps * 0.1, abs=0.15)
+
+
+def test_config_rejects_bad_values_by_name():
+    with pytest.raises(ValueError, match="hold"):
+        SafetyForecastConfig(hold=-1.0)
+    with pytest.raises(ValueError, match="dt"):
+        SafetyForecastConfig(dt=0.0)
+
+
+def test_value_source_shape_and_non_finite_actions():
+    env = at_speed(15.0, obstacle_ahead=40.0)
+    value = SafetyForecastValue()
+    obs = torch.zeros(2, 270)
+    acts = torch.tensor(np.stack([BRAKE, THROTTLE]))
+    q = value.values(obs, acts, env=env)
+    assert q.shape == (1, 2) and q.dtype == torch.float32
+    assert q[0, 0] == pytest.approx(3.0) and q[0, 1] < 3.0
+    nan = value.values(obs, torch.tensor([[float("nan"), 0.0], [0.0, 0.0]]), env=env)
+    assert nan[0, 0] == 0.0
+    with pytest.raises(ValueError, match="env="):
+        value.values(obs, acts)
+    assert value.state_dict() == {}  # nothing to checkpoint or push to workers
+
+
+def test_the_selector_executes_the_mentor_unless_its_action_fails_sooner():
+    env = at_speed(15.0, obstacle_ahead=40.0)
+    selector = HybridActionSelector(SafetyForecastValue(), epsilon_select=0.0)
+    obs = torch.zeros(270)
+
+    def pick(mentor, physics):
+        hybrid, chosen = selector.select(obs, torch.tensor(mentor), torch.tensor(physics), env=env)
+        return bool(chosen.item()), hybrid.numpy()
+
+    assert pick(THROTTLE, BRAKE) == (False, pytest.approx(BRAKE))  # the mentor drives into it: physics
+    assert pick(BRAKE, THROTTLE)[0]  # physics would: the mentor
+    assert pick(BRAKE, BRAKE * 0.9)[0]  # both safe: the mentor, always
+    with pytest.raises(ValueError, match="env="):
+        selector.select(obs, torch.tensor(BRAKE), torch.tensor(BRAKE))
+
+
+def test_recipe_value_source_forecast():
+    assert parse_value_source("forecast") == ("forecast", None)
+    cfg = load_config(overrides=["selector.value=forecast", "selector.epsilon_select=0"])
+    value = build_q_ensemble(cfg)
+    assert isinstance(value, SafetyForecastValue)
+    selector = build_selector(cfg, value)
+    assert selector.epsilon_select == 0.0
