@@ -161,12 +161,12 @@ def test_human_mentor_drives_a_real_env(env, tmp_path):
             fn(*args)
         d = mentor.decide(env, agent)
         takeovers.append(d.takeover)
-        if t == 6:
-            assert d.action.tolist() == [0.0, 1.0]
-        if t in (9, 10):
-            assert d.action[0] == pytest.approx(-0.1 * (t - 7)) and d.action[1] == 1.0
-        if t == 16:
-            assert d.action[0] == pytest.approx(5 / 9) and d.action[1] == 0.0
+        if t == 6:  # Up alone: the agent's steering stays (the handover), full throttle
+            assert d.action.tolist() == pytest.approx([0.2, 1.0])
+        if t in (9, 10):  # Left from t=8 ramps from the agent's 0.2
+            assert d.action[0] == pytest.approx(0.2 - 0.1 * (t - 7), abs=1e-6) and d.action[1] == 1.0
+        if t == 16:  # the stick steers; the untouched throttle axis keeps the agent's 0.5
+            assert d.action[0] == pytest.approx(5 / 9) and d.action[1] == 0.5
         assert mentor.control == ("HUMAN" if d.takeover else "AGENT")
         env.step(d.action if d.takeover else agent)
     assert takeovers == [t in range(5, 12) or t in range(15, 18) for t in range(20)]

@@ -7,6 +7,7 @@ The PE-RLHF recipe (``recipes/pe_rlhf``) with ``physics.enabled=false selector.e
 disturbance.enabled=true`` (``config.yaml`` beside this script): the takeover transform without
 physics or selector, :class:`~pe_rlhf.transforms.TrafficDisturbanceCost` after it, and
 ``PERLHFLoss`` with a disturbance critic (``loss.disturbance_weight``, ``loss.num_disturbance_qvalue_nets``).
+A bad value prints one line ``error: ...`` and exits 2; ``PE_RLHF_DEBUG=1`` shows the traceback.
 """
 
 from __future__ import annotations
@@ -23,4 +24,4 @@ def main(argv: list[str] | None = None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    recipe.run_command_line(main)

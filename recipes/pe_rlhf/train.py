@@ -5,7 +5,8 @@
 
 Everything reusable lives in ``pe_rlhf.training``; this script hands over to
 :func:`pe_rlhf.training.recipe.main` (config: ``recipes/pe_rlhf/config.yaml``, or
-``$PE_RLHF_RECIPES/pe_rlhf/config.yaml``).
+``$PE_RLHF_RECIPES/pe_rlhf/config.yaml``). A bad value prints one line ``error: ...`` and exits 2;
+``PE_RLHF_DEBUG=1`` shows the traceback.
 """
 
 from __future__ import annotations
@@ -18,4 +19,4 @@ def main(argv: list[str] | None = None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    recipe.run_command_line(main)

@@ -1,11 +1,12 @@
-"""The ``pe-rlhf`` command line: ``pe-rlhf evaluate ...`` (more subcommands register in SUBCOMMANDS).
+"""The ``pe-rlhf`` command: evaluate policies and trained runs, record demonstrations, run sweeps, compare runs.
 
-Example::
+Subcommands (:data:`SUBCOMMANDS`): ``evaluate``, ``demo record|info``, ``sweep``, ``compare``; training
+itself runs from ``recipes/<method>/train.py``. Examples in :data:`EPILOG` (``pe-rlhf --help``).
 
-    pe-rlhf evaluate --policy idm-mobil --split test --episodes 50 --json runs/idm.json
-    pe-rlhf evaluate --policy random --seeds 2000-2049 --config-override traffic_density=0.8
-    pe-rlhf sweep recipes/sweeps/mentor_proficiency.yaml --max-parallel 2
-    pe-rlhf compare --row HACO=runs/haco --eval IDM-MOBIL=runs/idm.json --out runs/table1
+Errors: a bad value (a config override, a seed range, a run folder, a sweep or compare spec: a
+``ValueError`` the subcommand checks, a :class:`~pe_rlhf.training.config.ConfigError`) or a bad argument
+prints one line ``error: <message>`` to stderr and exits 2, without a traceback; ``pe-rlhf --debug
+COMMAND ...`` (also accepted after the command) or ``PE_RLHF_DEBUG=1`` shows the traceback instead.
 """
 
 from __future__ import annotations
@@ -17,6 +18,8 @@ import sys
 from dataclasses import fields
 from typing import Any, Callable, Sequence
 
+from pe_rlhf import __version__
+from pe_rlhf.errors import OneLineErrorParser, debug_requested, fail
 from pe_rlhf.envs import DrivingConfig, parse_seeds, scene_seeds
 
 AddParser = Callable[[argparse._SubParsersAction], argparse.ArgumentParser]
@@ -221,19 +224,68 @@ SUBCOMMANDS: dict[str, AddParser] = {"evaluate": add_evaluate_parser, "demo": ad
                                      "sweep": add_sweep_parser, "compare": add_compare_parser}
 
 
+DESCRIPTION = """\
+PE-RLHF (physics-enhanced reinforcement learning with human feedback) for safe driving: evaluate a
+policy or a trained run on fixed scenes, record mentor demonstrations, run a sweep of training runs,
+and turn finished runs into the paper's table. Training itself runs from the recipes:
+python recipes/<method>/train.py (e.g. recipes/pe_rlhf/train.py profile=cpu)."""
+EPILOG = """\
+examples:
+  pe-rlhf evaluate --policy idm-mobil --split test --episodes 50 --json runs/idm.json
+  pe-rlhf evaluate --checkpoint runs/pe-rlhf-20250101-120000 --seeds 1000-1049
+  pe-rlhf demo record --mentor professional --steps 10000 --out runs/demos
+  pe-rlhf demo info runs/demos
+  pe-rlhf sweep recipes/sweeps/mentor_proficiency.yaml --max-parallel 2
+  pe-rlhf compare --row HACO=runs/haco --eval IDM-MOBIL=runs/idm.json --out runs/table1
+
+'pe-rlhf COMMAND --help' lists a command's options. A bad value or argument prints one line
+'error: ...' and exits 2; add --debug (or set PE_RLHF_DEBUG=1) to see the traceback."""
+
+
+class CommandParser(OneLineErrorParser):
+    """The ``pe-rlhf`` parser: one-line errors (:class:`~pe_rlhf.errors.OneLineErrorParser`)."""
+
+
+def _add_debug_flag(parser: argparse.ArgumentParser, top: bool = True) -> None:
+    """``--debug`` on ``parser`` and, so that it may follow the command too, on every subparser below it."""
+    parser.add_argument("--debug", action="store_true", default=False if top else argparse.SUPPRESS,
+                        help="on an error, show the traceback instead of one 'error:' line")
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sub in dict.fromkeys(action.choices.values()):  # aliases share a parser
+                _add_debug_flag(sub, top=False)
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The top-level parser with one subparser per entry of :data:`SUBCOMMANDS`."""
-    parser = argparse.ArgumentParser(prog="pe-rlhf", description=__doc__.splitlines()[0])
+    parser = CommandParser(prog="pe-rlhf", description=DESCRIPTION, epilog=EPILOG,
+                           formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     subparsers = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for add in SUBCOMMANDS.values():
         add(subparsers)
+    _add_debug_flag(parser)
     return parser
 
 
+def _is_config_error(error: BaseException) -> bool:
+    # A ConfigError exists only once its module is imported; importing it here would cost seconds.
+    config = sys.modules.get("pe_rlhf.training.config")
+    return config is not None and isinstance(error, config.ConfigError)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    """Parse ``argv`` (default: sys.argv[1:]) and run the chosen subcommand; returns its exit code."""
+    """Parse ``argv`` (default: sys.argv[1:]) and run the chosen subcommand; returns its exit code. A bad
+    argument or value raises ``SystemExit(2)`` after one ``error:`` line (see the module docstring)."""
     args = build_parser().parse_args(argv)
-    return args.handler(args, args.subparser)
+    debug = args.debug or debug_requested()
+    args.subparser.debug = debug
+    try:
+        return args.handler(args, args.subparser)
+    except ValueError as e:  # a ConfigError a subcommand did not turn into parser.error itself
+        if debug or not _is_config_error(e):
+            raise
+        fail(str(e))
 
 
 if __name__ == "__main__":

@@ -8,11 +8,14 @@ Outputs in the run folder: ``config.yaml`` (the resolved config), ``metrics.csv`
 ``learning_curves.png`` (+ ``testing_curves.png`` with periodic evaluations), ``actor.pt`` and
 ``checkpoints/``; the imitation methods also ``demos/`` when ``data.path`` is null (the recorded
 demonstrations).
+
+A bad config value or argument: one line ``error: <message>`` on stderr and exit code 2 when the script
+runs (``train.py`` calls :func:`~pe_rlhf.training.recipe.run_command_line`); ``PE_RLHF_DEBUG=1`` shows
+the traceback. Called as a function, ``main(method, argv)`` raises the ConfigError.
 """
 
 from __future__ import annotations
 
-import argparse
 import time
 from pathlib import Path
 
@@ -22,6 +25,7 @@ from pe_rlhf.baselines.plots import plot_baseline_curves
 from pe_rlhf.evaluation import write_json
 from pe_rlhf.training.config import save_config, to_container
 from pe_rlhf.training.metrics_logger import CSV_NAME, MetricsLogger
+from pe_rlhf.training.recipe import RecipeArgumentParser, report_final
 
 FINAL_EVAL = "final_eval.json"
 
@@ -33,15 +37,14 @@ def run_dir(cfg, method: str, out: str | None) -> Path:
 def main(method: str, argv: list[str] | None = None) -> dict:
     """Parse ``argv``, train ``method``, write the run folder; returns the final evaluation dict."""
     name = METHODS[method].name
-    parser = argparse.ArgumentParser(prog=f"recipes/{method}/train.py",
-                                     description=f"{name} baseline ({__doc__.splitlines()[0]})")
+    parser = RecipeArgumentParser(prog=f"recipes/{method}/train.py",
+                                  description=f"{name} baseline ({__doc__.splitlines()[0]})")
     parser.add_argument("overrides", nargs="*", help="config overrides, e.g. profile=cpu optim.lr=3e-4")
     parser.add_argument("--out", default=None, help=f"output folder (default runs/{method}-<time>)")
     parser.add_argument("--resume", default=None, metavar="DIR", help="continue the run in DIR")
     parser.add_argument("--compare", default=None, metavar="POLICY",
                         help="also evaluate a registered policy (e.g. idm-mobil) on the same test scenes")
     args = parser.parse_args(argv)
-    from pe_rlhf.training.recipe import report_final
     from pe_rlhf.training.trainer import registered_policies
 
     if args.compare and args.compare not in registered_policies():  # fail now, not after training

@@ -8,8 +8,10 @@ actions, takeover count, speed, step and the key help line. Keys and axes:
 :mod:`pe_rlhf.mentors.human_input`.
 
 - ``decide(env, agent_action)`` handles pending events, draws a frame and returns the
-  human's ``MentorDecision``; while paused it keeps drawing and handling events (clock
-  ticking) until unpaused or quit. Call ``show_control(source)`` after it to display who
+  human's ``MentorDecision``; a takeover starts from ``agent_action`` (the handover of
+  :mod:`~pe_rlhf.mentors.human_input`: holding only Up in a curve keeps the agent's
+  steering); while paused it keeps drawing and handling events (clock ticking) until
+  unpaused or quit. Call ``show_control(source)`` after it to display who
   finally drove this step (the physics/hybrid selector may pick PHYSICS); by default HUMAN
   when the person takes over, else AGENT.
 - ``act(env)``: the human drives alone (demonstrations; shown as HUMAN, not counted as takeovers).
@@ -152,7 +154,7 @@ class HumanMentor(Mentor):
             self._taking_over, self.control = False, "AGENT"
             self.human_action = np.zeros(2, dtype=np.float32)
             return False, self.human_action
-        takeover, action, _, _ = self.input.poll()
+        takeover, action, _, _ = self.input.poll(self.agent_action if agent else None)
         if agent:  # takeovers of the agent are counted; driving alone (act) is not one
             self.takeover_count += int(takeover and not self._taking_over)
             self.takeover_steps += int(takeover)

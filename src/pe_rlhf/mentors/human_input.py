@@ -2,15 +2,26 @@
 
 :class:`InputState` consumes a pygame event stream (``handle(event)``; real or posted with
 ``pygame.event.post``) and keeps the held keys, axes and buttons itself, so synthetic events
-drive it exactly like a person does. ``poll()`` is called once per env step and returns
+drive it exactly like a person does. ``poll(agent_action)`` is called once per env step and returns
 ``InputPoll(takeover, action, paused, quit)``.
 
 Keyboard (any driving key held = takeover; releasing all of them hands control back):
 
-- Left/A, Right/D: steering ramps by ``steer_rate`` (0.1) per poll towards -1/+1; reversing
-  direction restarts from 0; released, it returns towards 0 by ``steer_return`` (0.2) per poll.
-- Up/W: throttle +1. Down/S: throttle -1 (brake; wins over Up when both are held).
+- Left/A, Right/D: steering ramps by ``steer_rate`` (0.1) per poll towards -1/+1; reversing the
+  direction the person last steered restarts from 0; released, it returns towards 0 by
+  ``steer_return`` (0.2) per poll.
+- Up/W: throttle +1. Down/S: throttle -1 (brake; wins over Up when both are held). Neither: 0.
 - P/Space: pause toggle. Esc/Q or closing the window: quit. Losing window focus releases keys.
+
+Handover (``poll(agent_action)`` on the poll where a takeover starts; ``HumanMentor.decide`` passes the
+agent's proposed action): the person's input starts from the agent's ``[steering, throttle]``, not from
+their own last values (0 after a reset). An axis the person has not touched since the handover (no
+Left/Right, no Up/Down, a stick or pedal inside its deadzone) keeps the agent's value, so holding only
+Up in a curve keeps the agent's steering; Left/Right ramp from the agent's steering by ``steer_rate``
+(no restart from 0 when they turn back from it), so the first human steering is within one
+``steer_rate`` of the agent's; Up/Down and a moved stick or pedal command their own value at once
+(braking must not wait for a ramp). Once touched, an axis behaves as above. ``poll()`` without an agent
+action (driving alone: ``HumanMentor.act``) starts from the person's own values.
 
 The person leaving (``disconnects`` counts each time): Esc/Q always quits (``quit_requested``: the
 agent drives from then on), and so, by default, does closing the window; unplugging the gamepad in
@@ -113,6 +124,12 @@ class InputState:
         self.use_keyboard, self.use_joystick = keyboard, joystick
         self.held: set[int] = set()
         self.key_steering = 0.0
+        # The agent's steering / throttle at the last handover, per axis the person has not touched since
+        # (None: the person's own value); see the module docstring.
+        self.agent_steering: float | None = None
+        self.agent_throttle: float | None = None
+        self._taking_over = False  # the previous poll's takeover (a handover is its rising edge)
+        self._key_direction = 0.0  # the last steering key's direction (-1 left, +1 right; 0: none since a handover)
         self.axes: dict[int, dict[int, float]] = {}  # instance_id -> axis -> raw value
         self.buttons: dict[int, set[int]] = {}  # instance_id -> held buttons
         self.devices: dict[int, object] = {}  # instance_id -> opened pygame Joystick
@@ -223,30 +240,66 @@ class InputState:
         direction = (1.0 if right else 0.0) - (1.0 if left else 0.0)
         s = self.key_steering
         if direction != 0.0:
-            if s * direction < 0.0:
-                s = 0.0  # counter-steer starts from straight, not from the opposite lock
+            if s * direction < 0.0 and direction == -self._key_direction:
+                s = 0.0  # the person's counter-steer starts from straight, not from the opposite lock
             s = float(np.clip(round(s + direction * self.steer_rate, 9), -1.0, 1.0))
+            self.agent_steering, self._key_direction = None, direction
+        elif self.agent_steering is not None:
+            s = self.agent_steering  # untouched since the handover: the agent's steering stays
         else:
             s = float(np.sign(s) * max(0.0, round(abs(s) - self.steer_return, 9)))
         self.key_steering = s
+        if self.held & (UP_KEYS | DOWN_KEYS):
+            self.agent_throttle = None
         if self.held & DOWN_KEYS:
             return s, -1.0
-        return s, 1.0 if self.held & UP_KEYS else 0.0
+        if self.held & UP_KEYS:
+            return s, 1.0
+        return s, 0.0 if self.agent_throttle is None else self.agent_throttle
 
-    def poll(self) -> InputPoll:
-        """Advance the keyboard ramps one step and return this step's input."""
-        k_steer, k_throttle = self._advance_keys()
+    def _hand_over(self, agent_action) -> None:
+        """A takeover starts: the person's input starts from the agent's ``[steering, throttle]``."""
+        a = np.asarray(agent_action, dtype=np.float64).reshape(2)
+        if not np.isfinite(a).all():  # nothing sensible to start from: the person's own values
+            return
+        self.agent_steering, self.agent_throttle = (float(v) for v in np.clip(a, -1.0, 1.0))
+        self.key_steering, self._key_direction = self.agent_steering, 0.0
+
+    def _joystick_action(self, steering: float, throttle: float) -> tuple[float, float]:
+        """The device's action, with the axes untouched since the handover (at rest) kept at the agent's."""
+        if steering != 0.0:
+            self.agent_steering = None
+        if throttle != 0.0:
+            self.agent_throttle = None
+        return (steering if self.agent_steering is None else self.agent_steering,
+                throttle if self.agent_throttle is None else self.agent_throttle)
+
+    def poll(self, agent_action=None) -> InputPoll:
+        """Advance the keyboard ramps one step and return this step's input. ``agent_action``
+        (``[steering, throttle]``, what the agent proposes now): a takeover starting at this poll is a
+        handover from it (see the module docstring); None: input starts from the person's own values."""
+        keyboard = self.keyboard_driving()
         j_take, j_steer, j_throttle = self._joystick()
-        if self.keyboard_driving():
-            takeover, action = True, (k_steer, k_throttle)
+        takeover = keyboard or j_take
+        if not takeover:
+            self.agent_steering = self.agent_throttle = None
+        elif not self._taking_over and agent_action is not None:
+            self._hand_over(agent_action)
+        self._taking_over = takeover
+        k_steer, k_throttle = self._advance_keys()
+        if keyboard:
+            action = (k_steer, k_throttle)
         elif j_take:
-            takeover, action = True, (j_steer, j_throttle)
+            action = self._joystick_action(j_steer, j_throttle)
         else:
-            takeover, action = False, (k_steer, 0.0)
+            action = (k_steer, 0.0)
         return InputPoll(takeover, np.asarray(action, dtype=np.float32), self.paused, self.quit_requested)
 
     def reset(self) -> None:
-        """Forget ramps and the pause (held keys and devices stay: a person may keep holding)."""
-        self.key_steering = 0.0
+        """Forget ramps, the handover and the pause (held keys and devices stay: a person may keep
+        holding, and their first poll of the episode is a handover)."""
+        self.key_steering, self._key_direction = 0.0, 0.0
+        self.agent_steering = self.agent_throttle = None
+        self._taking_over = False
         if self.pause_reason is None:  # a pause for a disconnect lasts until the person is back
             self.paused = False

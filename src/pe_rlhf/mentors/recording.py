@@ -21,7 +21,6 @@ directory. Reopening continues the episode numbering and the scene-seed cycle.
 
 from __future__ import annotations
 
-import fcntl
 import hashlib
 import io
 import json
@@ -40,6 +39,7 @@ from tqdm.auto import tqdm
 from pe_rlhf import __version__
 from pe_rlhf.envs import DrivingConfig, make_gym_env, scene_seeds
 from pe_rlhf.envs.torchrl_env import BOOL_INFO, FLOAT_INFO, INT_INFO
+from pe_rlhf.filelock import FileLock
 
 FORMAT_VERSION = 1
 DONE_KEYS = ("done", "terminated", "truncated")
@@ -183,7 +183,8 @@ class DemonstrationRecorder:
     recorded for information. Reopening an existing directory checks mentor, seeds and env
     config against ``metadata.json`` (ValueError naming each mismatch unless ``allow_mismatch``),
     deletes chunks not in the manifest, and continues numbering and the seed cycle. One recorder
-    per directory at a time (an ``flock`` on ``.lock``; released by the OS if the process dies).
+    per directory at a time (a :class:`~pe_rlhf.filelock.FileLock` on ``.lock``; released by the OS if the
+    process dies).
     """
 
     def __init__(self, directory: str | Path, env_config: DrivingConfig | None = None, mentor_name: str = "mentor",
@@ -195,12 +196,9 @@ class DemonstrationRecorder:
         if not seeds:
             raise ValueError("DemonstrationRecorder needs at least one scene seed")
         (self.directory / "episodes").mkdir(parents=True, exist_ok=True)
-        self._lock = open(self.directory / ".lock", "a")  # noqa: SIM115 - held until close()
-        try:
-            fcntl.flock(self._lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            self._lock.close()
-            raise RuntimeError(f"another process is recording into {self.directory}") from None
+        self._lock = FileLock(self.directory / ".lock")  # held until close()
+        if not self._lock.acquire(blocking=False):
+            raise RuntimeError(f"another process is recording into {self.directory}")
         try:
             self._open(mentor_name, seeds, split, allow_mismatch)
         except BaseException:
@@ -304,9 +302,7 @@ class DemonstrationRecorder:
 
     def close(self) -> None:
         """Release the directory lock (finished episodes are already on disk)."""
-        if not self._lock.closed:
-            fcntl.flock(self._lock, fcntl.LOCK_UN)
-            self._lock.close()
+        self._lock.release()
 
     def __enter__(self) -> DemonstrationRecorder:
         return self

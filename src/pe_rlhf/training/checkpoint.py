@@ -14,7 +14,7 @@ On disk (``directory/``)::
         COMPLETE               JSON written last: format_version, step, ``sha256`` of tensors.pt,
                                and bytes + sha256 of every other file in the checkpoint
     latest                     the newest checkpoint's directory name (one line)
-    .lock                      held (``flock``) while a checkpoint is written
+    .lock                      held (:class:`~pe_rlhf.filelock.FileLock`) while a checkpoint is written
 
 Writing: everything goes to ``.tmp-ckpt_{step:09d}-{pid}/`` (each file fsync'd), ``COMPLETE`` last,
 then the directory is renamed to ``ckpt_{step:09d}`` (an atomic rename), the parent fsync'd, and
@@ -33,7 +33,6 @@ checkpoint cannot run code; every corrupt or unsafe file raises :class:`Checkpoi
 from __future__ import annotations
 
 import errno
-import fcntl
 import hashlib
 import io
 import json
@@ -43,12 +42,13 @@ import random
 import re
 import shutil
 import warnings
-from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Iterator, Mapping
+from typing import Any, Mapping
 
 import numpy as np
 import torch
+
+from pe_rlhf.filelock import FileLock
 
 __all__ = [
     "CheckpointError",
@@ -177,16 +177,6 @@ def _sha256_file(path: Path) -> str:
 
 def _rmtree(path: Path) -> None:
     shutil.rmtree(path, ignore_errors=True)
-
-
-@contextmanager
-def _locked(directory: Path) -> Iterator[None]:
-    fd = os.open(directory / ".lock", os.O_RDWR | os.O_CREAT, 0o644)
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX)
-        yield
-    finally:
-        os.close(fd)  # releases the lock
 
 
 def _step_of(path: Path) -> int | None:
@@ -382,7 +372,7 @@ def save_checkpoint(
 
     directory.mkdir(parents=True, exist_ok=True)
     final = directory / _dir_name(step)
-    with _locked(directory):
+    with FileLock(directory / ".lock"):
         for stale in list(directory.iterdir()):  # leftovers of writers that died (we hold the lock)
             if not stale.is_dir():
                 continue

@@ -278,13 +278,15 @@ def _int(minimum: int) -> Rule:
 
 
 def _number(lo: float | None = None, hi: float | None = None, lo_open: bool = False,
-            hi_open: bool = False) -> Rule:
+            hi_open: bool = False, meaning: str = "") -> Rule:
+    """A finite number in the bounds; ``meaning`` (what the values do) is appended to the message."""
     if lo is not None and hi is not None:
         allowed = f"must be a finite number in {'(' if lo_open else '['}{lo}, {hi}{')' if hi_open else ']'}"
     elif lo is not None:
         allowed = f"must be a finite number {'>' if lo_open else '>='} {lo}"
     else:
         allowed = "must be a finite number"
+    allowed += f" ({meaning})" if meaning else ""
 
     def rule(v):
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
@@ -352,12 +354,17 @@ def _backend(v) -> str | None:
     return None
 
 
+# HybridActionSelector keeps the mentor iff mean_k[Q_k(s, a_mentor) - Q_k(s, a_phy)] >= epsilon_select.
+EPSILON_SELECT_MEANING = ("any sign, in the value source's units: > 0 the mentor must be valued that much above "
+                          "physics, 0 the higher-valued action wins, < 0 physics vetoes the mentor only when valued "
+                          "-epsilon_select above it")
+
 RULES: dict[str, Rule] = {
     "seed": _int(0),
     "profile": _choice(*PROFILES),
     "mentor.name": _mentor_name, "mentor.seed": _int(0),
     **{f"physics.{k}": _bool for k in ("enabled", "see_obstacles", "stop_for_obstacles", "use_idm", "use_mobil")},
-    "selector.enabled": _bool, "selector.epsilon_select": _number(),
+    "selector.enabled": _bool, "selector.epsilon_select": _number(meaning=EPSILON_SELECT_MEANING),
     "selector.variance_threshold": _optional(_number(0)), "selector.num_members": _int(1),
     "selector.hidden": _hidden, "selector.warmup_fit_steps": _int(0), "selector.refresh_every": _int(0),
     "selector.refresh_steps": _int(0), "selector.fit_loss": _choice(*FIT_LOSSES),

@@ -4,26 +4,53 @@ command line, load the recipe's config, train, write the outputs, print the summ
 Outputs in the run folder: ``config.yaml`` (resolved), ``metrics.csv``, ``checkpoints/``,
 ``final_eval.json``, ``training_curves.png``, ``actor.pt``, ``test_episode.gif`` (with ``eval.video``) and
 ``reference_<policy>.json`` (with ``--compare``).
+
+Errors, for every recipe (the baselines' ``train.py`` too): a script runs its ``main`` through
+:func:`run_command_line`, so a bad config value, file or override (a
+:class:`~pe_rlhf.training.config.ConfigError`; the config is checked before anything is built) or a bad
+argument prints one line ``error: <message>`` to stderr and exits 2, without a traceback.
+``PE_RLHF_DEBUG=1 python recipes/<method>/train.py ...`` shows the traceback instead (an environment
+variable, not a flag: the command line is the run's config overrides). Called as a function,
+``main(argv)`` raises the ConfigError.
 """
 
 from __future__ import annotations
 
 import argparse
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 from pe_rlhf.evaluation import print_summary, write_json
-from pe_rlhf.training.config import load_config, method_name, save_config, to_container
+from pe_rlhf.errors import OneLineErrorParser, debug_requested, fail
+from pe_rlhf.training.config import ConfigError, load_config, method_name, save_config, to_container
 from pe_rlhf.training.metrics_logger import MetricsLogger
 from pe_rlhf.training.plots import plot_learning_curves
 from pe_rlhf.training.trainer import evaluate_reference, registered_policies, train
+
+
+
+class RecipeArgumentParser(OneLineErrorParser):
+    """A recipe's parser: one-line errors (:class:`~pe_rlhf.errors.OneLineErrorParser`), the traceback with
+    ``$PE_RLHF_DEBUG``."""
+
+
+def run_command_line(main: Callable[..., object], *args: object) -> None:
+    """Run a recipe script's ``main(*args)`` (the command line is ``sys.argv``): a ConfigError becomes one
+    ``error:`` line and exit code 2 (:func:`fail`), unless ``$PE_RLHF_DEBUG`` asks for the traceback."""
+    try:
+        main(*args)
+    except ConfigError as e:
+        if debug_requested():
+            raise
+        fail(str(e))
 
 
 def main(argv: list[str] | None = None, *, config_path: str | Path | None = None,
          description: str | None = None) -> dict:
     """Run a recipe: ``config_path`` is its ``config.yaml`` (None: ``recipes/pe_rlhf/config.yaml``,
     see :func:`~pe_rlhf.training.config.load_config`); ``argv`` as on the command line."""
-    parser = argparse.ArgumentParser(description=description)
+    parser = RecipeArgumentParser(description=description)
     parser.add_argument("overrides", nargs="*", help="config overrides, e.g. profile=cpu optim.lr=3e-4")
     parser.add_argument("--out", default=None, help="output folder (default runs/<method>-<time>)")
     parser.add_argument("--compare", default=None, metavar="POLICY",
