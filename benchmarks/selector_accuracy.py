@@ -2,7 +2,8 @@
 
     python benchmarks/selector_accuracy.py RUN_DIR [RUN_DIR ...] [--scenes 0-19] [--hold 10] [--horizon 40]
         [--epsilons 0 0.5 1.5] [--max-states 300] [--every 10] [--json out.json]
-    python benchmarks/selector_accuracy.py --mentors professional adversarial [--value expert] ...
+    python benchmarks/selector_accuracy.py --mentors professional adversarial [--value expert|forecast]
+        [--epsilon-run E] ...
 
 ``--mentors``: no run folder; the recipe's defaults with each mentor and ``selector.value`` (``--value``: a
 frozen expert, the packaged one by default), as a PE-RLHF run would start its online phase with.
@@ -78,9 +79,11 @@ def count_events(states: list[tuple]) -> int:
     return events
 
 
-def expert_setup(mentor: str, value: str):
-    """The recipe's defaults with ``mentor`` and ``selector.value=value`` (a frozen expert: nothing to fit)."""
-    cfg = load_config(overrides=[f"mentor.name={mentor}", f"selector.value={value}"])
+def expert_setup(mentor: str, value: str, epsilon_run: float | None = None):
+    """The recipe's defaults with ``mentor`` and ``selector.value=value`` (a frozen expert or the physics
+    forecast: nothing to fit), ``selector.epsilon_select=epsilon_run`` when given."""
+    extra = [] if epsilon_run is None else [f"selector.epsilon_select={epsilon_run}"]
+    cfg = load_config(overrides=[f"mentor.name={mentor}", f"selector.value={value}", *extra])
     return cfg, build_q_ensemble(cfg).eval()
 
 
@@ -112,7 +115,7 @@ def measure(run: Path | str, args, setup=None) -> dict:
                     q = ensemble.values(*pair, env=env) if getattr(ensemble, "needs_env", False) else ensemble.values(*pair)
                 advantage = float((q[:, 0] - q[:, 1]).mean())
                 seen += 1
-                if seen % args.every == 0:  # label every k-th takeover state: more scenes for the same cost
+                if seen % args.every == 0 and seen <= args.every * args.max_per_scene:  # every k-th, capped a scene
                     differences.append(a_mentor - a_phy)
                     states.append((advantage, fails(env, a_mentor, mentor.act, args.hold, args.horizon, oracle),
                                fails(env, a_phy, physics, args.hold, args.horizon, oracle), seed, step))
@@ -155,6 +158,11 @@ def main(argv=None):
     parser.add_argument("--epsilons", type=float, nargs="+", default=[0.0, 0.5, 1.5])
     parser.add_argument("--max-states", type=int, default=300, help="labelled takeover states per run")
     parser.add_argument("--every", type=int, default=10, help="label every k-th takeover state (1: all of them)")
+    parser.add_argument("--max-per-scene", type=int, default=10**9,
+                        help="label at most this many states a scene (a car stuck behind an obstacle is taken over "
+                             "for hundreds of steps: without a cap one scene fills the sample)")
+    parser.add_argument("--epsilon-run", type=float, default=None,
+                        help="with --mentors: the threshold the driven takeovers execute with (default: the recipe's)")
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
     if args.every < 1:
@@ -163,7 +171,8 @@ def main(argv=None):
         parser.error("give run folders or --mentors")
     torch.set_num_threads(1)
     results = []
-    jobs = [(run, None) for run in args.runs] + [(f"{m} ({args.value})", (m, args.value)) for m in args.mentors or []]
+    jobs = [(run, None) for run in args.runs] + [(f"{m} ({args.value})", (m, args.value, args.epsilon_run))
+                                               for m in args.mentors or []]
     for run, virtual in jobs:
         t = time.time()
         r = measure(run, args, expert_setup(*virtual) if virtual else None)

@@ -59,3 +59,17 @@ def test_the_summary_groups_by_mentor_and_method(tmp_path):
     assert "| professional | idm_mobil | 1 | 0.42 [0.42, 0.42] | 0.98 [0.98, 0.98] | — | — |" in table
     assert np.isfinite(pe["train_violations"]).all()
     assert claims_summary(cells) == summary
+
+
+def test_each_method_can_come_from_its_own_sweep(tmp_path):
+    old, new = tmp_path / "old.csv", tmp_path / "new.csv"
+    write_cells(old, [row("pe-rlhf", "professional", 0, 0.2, 0.5, 9, 0.6), row("haco", "professional", 0, 0.6, 0.1, 0, 0.2),
+                      row("idm-mobil", "-", 0, 0.42, 0.02)])
+    write_cells(new, [row("pe-rlhf", "professional", 0, 0.8, 0.0, 1, 0.3)])
+    summary = claims_summary([f"{old}:haco,idm-mobil", f"{new}:pe-rlhf"])
+    assert summary["professional"]["pe_rlhf"]["success"][0] == pytest.approx(0.8)  # the old pe-rlhf row is left out
+    assert summary["professional"]["haco"]["success"][0] == pytest.approx(0.6)
+    assert summary["professional"]["idm_mobil"]["seeds"] == 1
+    assert claims_summary([old, new])["professional"]["pe_rlhf"]["seeds"] == 2  # no filter: both
+    with pytest.raises(FileNotFoundError, match="no such cells.csv"):
+        claims_summary([tmp_path / "missing.csv"])

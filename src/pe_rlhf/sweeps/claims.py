@@ -46,9 +46,28 @@ def bootstrap_interval(values: list[float]) -> list[float] | None:
     return [mean, lo, hi]
 
 
-def claims_summary(cells_csv: str | Path) -> dict:
-    """The summary (module docstring) of the finished cells in ``cells_csv``."""
-    rows = [r for r in csv.DictReader(open(cells_csv, newline="")) if r.get("status") == "finished"]
+def read_cells(sources: str | Path | list[str | Path]) -> list[dict]:
+    """The finished rows of one or more ``cells.csv``; a source ``PATH:METHOD,METHOD`` keeps only those methods
+    (sweep names, e.g. ``runs/sweeps/claims/cells.csv:haco,idm-mobil``), so that the claims can take each method
+    from the sweep that ran its final configuration."""
+    rows = []
+    for source in [sources] if isinstance(sources, (str, Path)) else sources:
+        path, methods = Path(source), None
+        if not path.is_file() and ":" in str(source):
+            head, _, tail = str(source).rpartition(":")
+            path, methods = Path(head), {m.strip() for m in tail.split(",") if m.strip()}
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: no such cells.csv")
+        with open(path, newline="") as f:
+            rows += [r for r in csv.DictReader(f) if r.get("status") == "finished"
+                     and (methods is None or r["method"] in methods)]
+    return rows
+
+
+def claims_summary(cells_csv: str | Path | list[str | Path]) -> dict:
+    """The summary (module docstring) of the finished cells in ``cells_csv`` (one or more sources, see
+    :func:`read_cells`)."""
+    rows = read_cells(cells_csv)
     groups: dict[tuple[str, str], list[dict]] = {}
     for r in rows:
         groups.setdefault((r["mentor"], r["method"].replace("-", "_")), []).append(r)
@@ -86,7 +105,7 @@ def markdown_table(summary: dict) -> str:
     return "\n".join(lines)
 
 
-def write_claims(cells_csv: str | Path, out_dir: str | Path) -> dict:
+def write_claims(cells_csv: str | Path | list[str | Path], out_dir: str | Path) -> dict:
     """``summary.json`` and ``summary.md`` in ``out_dir``; returns the summary."""
     summary = claims_summary(cells_csv)
     out_dir = Path(out_dir)
@@ -96,4 +115,4 @@ def write_claims(cells_csv: str | Path, out_dir: str | Path) -> dict:
     return summary
 
 
-__all__ = ["bootstrap_interval", "claims_summary", "markdown_table", "write_claims"]
+__all__ = ["bootstrap_interval", "claims_summary", "markdown_table", "read_cells", "write_claims"]
