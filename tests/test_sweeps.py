@@ -7,6 +7,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import os
 from pathlib import Path
 
 import pytest
@@ -300,5 +301,28 @@ def test_two_cell_sweep_on_local_ray(tmp_path):
         assert "| pe-rlhf | 1/1 |" in (tmp_path / "summary.md").read_text()
         again = run_sweep(spec, tmp_path, progress=False)
         assert sorted(again.skipped) == ["haco__s0", "pe-rlhf__s0"] and not again.finished and not again.failed
+    finally:
+        ray.shutdown()
+
+
+def test_a_local_ray_runs_the_cells_at_normal_priority(monkeypatch):
+    """Ray starts its workers at nice 15 unless told otherwise: beside any other job the cells then starve."""
+    ray = pytest.importorskip("ray")
+    from pe_rlhf.sweeps.execution import RAY_WORKER_NICENESS, _init_ray
+
+    if ray.is_initialized():
+        ray.shutdown()
+    monkeypatch.delenv(RAY_WORKER_NICENESS, raising=False)
+    _, started = _init_ray(None)
+    try:
+        assert started
+
+        @ray.remote(num_cpus=0)
+        def niceness():
+            import os
+
+            return os.nice(0)
+
+        assert ray.get(niceness.remote()) <= os.nice(0)  # not below the sweep's own priority (Ray: +15)
     finally:
         ray.shutdown()
