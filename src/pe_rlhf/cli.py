@@ -1,6 +1,6 @@
 """The ``pe-rlhf`` command: evaluate policies and trained runs, record demonstrations, run sweeps, compare runs.
 
-Subcommands (:data:`SUBCOMMANDS`): ``evaluate``, ``demo record|info``, ``sweep``, ``compare``; training
+Subcommands (:data:`SUBCOMMANDS`): ``evaluate``, ``demo record|info|export|import``, ``sweep``, ``compare``; training
 itself runs from ``recipes/<method>/train.py``. Examples in :data:`EPILOG` (``pe-rlhf --help``).
 
 Errors: a bad value (a config override, a seed range, a run folder, a sweep or compare spec: a
@@ -181,10 +181,43 @@ def run_demo_info(args: argparse.Namespace, parser: argparse.ArgumentParser) -> 
     return 0
 
 
+def run_demo_export(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
+    """Write a demonstration dataset as a Minari dataset."""
+    try:
+        from pe_rlhf.mentors.minari_export import export_minari
+
+        done = export_minari(args.directory, args.out)
+    except (ValueError, FileNotFoundError, ImportError) as e:
+        parser.error(str(e))
+    print(f"exported {done['episodes']} episodes ({done['steps']} steps) of {args.directory} as Minari dataset "
+          f"{done['dataset_id']} in {done['path']}")
+    return 0
+
+
+def run_demo_import(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
+    """Append a Minari dataset's episodes to a demonstration dataset."""
+    from pe_rlhf.mentors.recording import dataset_info
+
+    try:
+        from pe_rlhf.mentors.minari_export import import_minari
+
+        done = import_minari(args.source, args.out, mentor=args.mentor)
+    except (ValueError, FileNotFoundError, ImportError, RuntimeError) as e:
+        parser.error(str(e))
+    print(f"imported {done['episodes']} episodes ({done['steps']} steps) of {args.source} into {args.out}")
+    _print_demo_info(dataset_info(args.out))
+    return 0
+
+
+MINARI_WHERE = ("a Minari dataset id [namespace/]name-vN (under $MINARI_DATASETS_PATH, default "
+                "~/.minari/datasets) or a path starting with /, . or ~ whose last part is such an id")
+
+
 def add_demo_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
-    """``pe-rlhf demo record|info``: crash-safe mentor demonstrations (warm-up data)."""
-    p = subparsers.add_parser("demo", help="record or inspect mentor demonstrations",
-                              description="Record mentor-only driving into a crash-safe dataset, or summarise one.")
+    """``pe-rlhf demo record|info|export|import``: crash-safe mentor demonstrations (warm-up data)."""
+    p = subparsers.add_parser("demo", help="record, inspect, export or import mentor demonstrations",
+                              description="Record mentor-only driving into a crash-safe dataset, summarise one, "
+                              "or convert one to or from a Minari dataset.")
     sub = p.add_subparsers(dest="demo_command", required=True, metavar="ACTION")
     r = sub.add_parser("record", help="record (or continue) a dataset",
                        description="Let a mentor drive alone; each finished episode is saved immediately. "
@@ -203,6 +236,21 @@ def add_demo_parser(subparsers: argparse._SubParsersAction) -> argparse.Argument
     i = sub.add_parser("info", help="summarise a dataset", description="Episodes, steps, success rate, mentor.")
     i.add_argument("directory", metavar="DIR")
     i.set_defaults(handler=run_demo_info, subparser=i)
+    e = sub.add_parser("export", help="write a dataset in another format (Minari)",
+                       description="Write a dataset as a Minari dataset that minari.load_dataset reads: "
+                       "observations, executed actions, rewards, terminations/truncations; the step info as infos.")
+    e.add_argument("directory", metavar="DIR")
+    e.add_argument("--to", default="minari", choices=("minari",), help="format (default: minari)")
+    e.add_argument("--out", required=True, metavar="NAME_OR_PATH", help=f"{MINARI_WHERE}; must not exist")
+    e.set_defaults(handler=run_demo_export, subparser=e)
+    m = sub.add_parser("import", help="append a dataset of another format (Minari)",
+                       description="Append the episodes of a Minari dataset recorded in pe_rlhf/Driving-v0 "
+                       "(e.g. one 'demo export' wrote) to a dataset directory.")
+    m.add_argument("source", metavar="NAME_OR_PATH", help=MINARI_WHERE)
+    m.add_argument("--from", dest="format", default="minari", choices=("minari",), help="format (default: minari)")
+    m.add_argument("--out", required=True, metavar="DIR", help="dataset directory (created or continued)")
+    m.add_argument("--mentor", metavar="NAME", help="the mentor's name to record (default: the dataset's)")
+    m.set_defaults(handler=run_demo_import, subparser=m)
     return p
 
 
@@ -235,6 +283,7 @@ examples:
   pe-rlhf evaluate --checkpoint runs/pe-rlhf-20250101-120000 --seeds 1000-1049
   pe-rlhf demo record --mentor professional --steps 10000 --out runs/demos
   pe-rlhf demo info runs/demos
+  pe-rlhf demo export runs/demos --to minari --out pe-rlhf/professional-v0
   pe-rlhf sweep recipes/sweeps/mentor_proficiency.yaml --max-parallel 2
   pe-rlhf compare --row HACO=runs/haco --eval IDM-MOBIL=runs/idm.json --out runs/table1
 

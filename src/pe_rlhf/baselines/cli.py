@@ -59,7 +59,7 @@ def main(method: str, argv: list[str] | None = None) -> dict:
     save_config(cfg, out / "config.yaml")  # on --resume: with the overrides it continued under
     lg = cfg.logger
     with MetricsLogger(out, csv=bool(lg.csv), wandb=bool(lg.wandb), wandb_mode=str(lg.wandb_mode),
-                       wandb_project=str(lg.wandb_project), tensorboard=bool(lg.tensorboard),
+                       wandb_project=str(lg.wandb_project), tensorboard=bool(lg.tensorboard), mlflow=bool(lg.mlflow),
                        config=to_container(cfg), resume=bool(args.resume)) as logger:
         final = train_baseline(cfg, out, logger, checkpoint_dir=out / "checkpoints", resume=bool(args.resume))
     write_json(out / FINAL_EVAL, final)

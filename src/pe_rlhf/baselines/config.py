@@ -95,7 +95,7 @@ _COMMON: dict[str, Any] = {
     "profile": "paper",
     "env": {"lane_features": True},
     "logger": {"out_dir": None, "csv": True, "wandb": False, "wandb_mode": "offline", "wandb_project": "pe-rlhf",
-               "tensorboard": False, "log_every": 1},
+               "tensorboard": False, "mlflow": False, "log_every": 1},
     "eval": {"every_frames": 100_000, "episodes": 50, "split": "test"},
     "checkpoint": {"every_frames": 50_000, "keep": 2},
 }
@@ -261,7 +261,7 @@ RULES = {
     "loss.backtrack_ratio": _number(0, 1, lo_open=True, hi_open=True), "loss.max_backtracks": _int(1),
     "constraint.cost_limit": _number(0), "constraint.window": _int(1),
     "constraint.lambda_lr": _number(0, lo_open=True), "constraint.lambda_init": _number(0),
-    "logger.out_dir": _optional(_string), **{f"logger.{k}": _bool for k in ("csv", "wandb", "tensorboard")},
+    "logger.out_dir": _optional(_string), **{f"logger.{k}": _bool for k in ("csv", "wandb", "tensorboard", "mlflow")},
     "logger.wandb_mode": _choice(*WANDB_MODES), "logger.wandb_project": _string, "logger.log_every": _int(1),
     "eval.every_frames": _int(0), "eval.episodes": _int(1), "eval.split": _choice(*SPLITS),
     "checkpoint.every_frames": _int(0), "checkpoint.keep": _int(1),

@@ -62,7 +62,7 @@ DEFAULTS: dict[str, Any] = {
              "failure_target": "batch_min"},
     "disturbance": {"enabled": False, "threshold": 5.0, "horizon": 3.0, "follower_range": 60.0},
     "logger": {"out_dir": None, "csv": True, "wandb": False, "wandb_mode": "offline",
-               "wandb_project": "pe-rlhf", "tensorboard": False, "log_every": 1},
+               "wandb_project": "pe-rlhf", "tensorboard": False, "mlflow": False, "log_every": 1},
     "eval": {"every_frames": 5000, "episodes": 10, "split": "test", "video": True},
     "checkpoint": {"every_frames": 5000, "keep": 2},
 }
@@ -388,7 +388,7 @@ RULES: dict[str, Rule] = {
     "loss.failure_target": _choice(*FAILURE_TARGETS),
     "disturbance.enabled": _bool, **{f"disturbance.{k}": _number(0, lo_open=True)
                                       for k in ("threshold", "horizon", "follower_range")},
-    "logger.out_dir": _optional(_string), **{f"logger.{k}": _bool for k in ("csv", "wandb", "tensorboard")},
+    "logger.out_dir": _optional(_string), **{f"logger.{k}": _bool for k in ("csv", "wandb", "tensorboard", "mlflow")},
     "logger.wandb_mode": _choice(*WANDB_MODES), "logger.wandb_project": _string, "logger.log_every": _int(1),
     "eval.every_frames": _int(0), "eval.episodes": _int(1), "eval.split": _choice(*SPLITS), "eval.video": _bool,
     "checkpoint.every_frames": _int(0), "checkpoint.keep": _int(1),

@@ -1,30 +1,29 @@
-"""Training metrics to a crash-safe CSV, and optionally to wandb (offline) and TensorBoard.
+"""Training metrics through TorchRL's ``Logger`` interface: a crash-safe CSV, and wandb, TensorBoard, MLflow.
 
-One row per :meth:`MetricsLogger.log` call: ``step`` (environment steps) plus the
-given metrics. Column names follow the convention in :mod:`pe_rlhf.training.plots`
-(``train/...``, ``loss/...``, ``eval/<metric>_mean`` / ``eval/<metric>_std``);
-:func:`flatten_eval_summary` turns an evaluation summary into the ``eval/`` columns.
-
-The CSV is readable at every moment: a row is appended, flushed and fsync'ed per
-call; when new columns appear the whole file is rewritten to a temporary file and
-atomically swapped in (:func:`os.replace`), so a crash leaves either the old or
-the new file, never half of one. Rows logged at the same step by separate calls
-(e.g. training, then evaluation) stay separate rows; readers drop blank cells.
+:class:`MetricsLogger` fans each :meth:`~MetricsLogger.log` call out to the TorchRL loggers it was
+configured with (:attr:`MetricsLogger.loggers`): the crash-safe CSV
+(:class:`~pe_rlhf.training.csv_logger.CrashSafeCSVLogger`, one row per call: ``step`` (environment
+steps) plus the given metrics) and TorchRL's own ``WandbLogger``, ``TensorboardLogger`` and
+``MLFlowLogger``; :meth:`~MetricsLogger.log_video` sends a video (the test episode) to the ones that
+take videos. Column names follow the convention in :mod:`pe_rlhf.training.plots` (``train/...``,
+``loss/...``, ``eval/<metric>_mean`` / ``eval/<metric>_std``); :func:`flatten_eval_summary` turns an
+evaluation summary into the ``eval/`` columns.
 """
 
 from __future__ import annotations
 
 import csv
 import math
-import numbers
 import os
-import tempfile
 import warnings
 from pathlib import Path
 from typing import Any, Iterable, Mapping
 
-STEP = "step"
-CSV_NAME = "metrics.csv"
+from torchrl.record.loggers.tensorboard import TensorboardLogger
+
+from pe_rlhf.training.csv_logger import CSV_NAME, STEP, CrashSafeCSVLogger, to_number
+
+VIDEO_FPS = 10  # the test-episode GIF's rate: the env's 10 Hz policy, real time
 
 
 def flatten_eval_summary(summary: Mapping[str, Any], prefix: str = "eval/") -> dict[str, float]:
@@ -59,39 +58,45 @@ def read_metrics_csv(path: str | os.PathLike) -> tuple[list[str], list[dict[str,
     return columns, rows
 
 
-def _to_number(key: str, value: Any) -> float | int:
-    if hasattr(value, "item") and callable(value.item):  # torch / numpy scalars
-        value = value.item()
-    if isinstance(value, bool):
-        return int(value)
-    if isinstance(value, numbers.Integral):
-        return int(value)
-    if isinstance(value, numbers.Real):
-        return float(value)
-    raise TypeError(f"metric {key!r} must be a number, got {type(value).__name__}")
+class ResumableTensorboardLogger(TensorboardLogger):
+    """TorchRL's ``TensorboardLogger`` whose writer purges the events from ``purge_step`` on (a resume)."""
+
+    def __init__(self, exp_name: str, log_dir: str = "tb_logs", purge_step: int | None = None) -> None:
+        self.purge_step = purge_step
+        super().__init__(exp_name, log_dir)
+
+    def _create_experiment(self):
+        from torch.utils.tensorboard import SummaryWriter
+
+        return SummaryWriter(log_dir=os.path.join(self.log_dir, self.exp_name), purge_step=self.purge_step)
 
 
-def _cell(value: float | int | None) -> str:
-    if value is None:
-        return ""
-    return str(value) if isinstance(value, int) else repr(float(value))
+def _flat(config: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for key, value in config.items():
+        if isinstance(value, Mapping):
+            out.update(_flat(value, f"{prefix}{key}."))
+        else:
+            out[f"{prefix}{key}"] = value
+    return out
 
 
 class MetricsLogger:
-    """Log ``{name: number}`` per step to ``out_dir/metrics.csv``, wandb and/or TensorBoard.
+    """Log ``{name: number}`` per step to ``out_dir/metrics.csv``, wandb, TensorBoard and/or MLflow.
 
-    In: ``out_dir`` (created); ``csv`` writes ``metrics.csv``; ``wandb`` starts a run
-    (imported lazily; ``mode="offline"`` by default, files under ``out_dir/wandb``,
-    ``WANDB_SILENT`` set, so nothing touches the network unless ``wandb_mode="online"``);
-    ``tensorboard`` writes event files to ``out_dir/tensorboard`` and raises
-    ``ImportError`` at construction when the ``tensorboard`` package is missing;
-    ``config`` goes to wandb's run config and TensorBoard's text tab.
-    ``resume=True`` keeps the rows of an existing ``metrics.csv`` (and the wandb run id
-    in ``out_dir/wandb_run_id``); call :meth:`truncate_after` with the checkpoint's step
-    so that the resumed curve has no repeat. Without ``resume`` an existing CSV is replaced.
+    In: ``out_dir`` (created); ``csv`` writes ``metrics.csv``; ``wandb`` starts a run (TorchRL's
+    ``WandbLogger``; ``mode="offline"`` by default, files under ``out_dir/wandb``, ``WANDB_SILENT`` set,
+    so nothing touches the network unless ``wandb_mode="online"``); ``tensorboard`` writes event files to
+    ``out_dir/tensorboard`` (``TensorboardLogger``) and raises ``ImportError`` at construction when the
+    ``tensorboard`` package is missing; ``mlflow`` logs to ``$MLFLOW_TRACKING_URI``, else to the file
+    store ``out_dir/mlruns`` (``MLFlowLogger``, experiment ``wandb_project``; ``mlflow`` imported only
+    then); ``config`` goes to wandb's run config, TensorBoard's text tab and MLflow's params.
+    ``resume=True`` keeps the rows of an existing ``metrics.csv`` (and the wandb run id in
+    ``out_dir/wandb_run_id``); call :meth:`truncate_after` with the checkpoint's step so that the
+    resumed curve has no repeat. Without ``resume`` an existing CSV is replaced.
 
-    Non-finite values are written as blank cells (and left out of wandb/TensorBoard),
-    with one ``warnings.warn`` per key. Use as a context manager or call :meth:`close`.
+    Non-finite values are written as blank cells (and left out of the other loggers), with one
+    ``warnings.warn`` per key. Use as a context manager or call :meth:`close`.
     """
 
     def __init__(
@@ -103,53 +108,49 @@ class MetricsLogger:
         wandb_mode: str = "offline",
         wandb_project: str = "pe-rlhf",
         tensorboard: bool = False,
+        mlflow: bool = False,
         config: dict | None = None,
         resume: bool = False,
     ):
+        if tensorboard:
+            self._require_tensorboard()  # before anything is written
         self.out_dir = Path(out_dir)
         self.out_dir.mkdir(parents=True, exist_ok=True)
         self.config = dict(config or {})
         self.resume = bool(resume)
         self._warned: set[str] = set()
         self._closed = False
-        self._columns: list[str] = [STEP]
-        self._rows: list[dict[str, str]] = []
-        self._file = None
-        self._writer = None
-        self._tb_module = self._import_tensorboard() if tensorboard else None
-        self._tb = None
+        self._tensorboard = bool(tensorboard)
         self._tb_purge_step: int | None = None
-        self.wandb_run = None
-
-        self.csv_path: Path | None = self.out_dir / CSV_NAME if csv else None
-        if self.csv_path is not None:
-            if self.resume and self.csv_path.exists():
-                self._load_existing()
-            self._rewrite()
+        self.loggers: dict = {}  # name -> torchrl.record.loggers.Logger, in the order they were started
+        if csv:
+            self.loggers["csv"] = CrashSafeCSVLogger(self.out_dir.name, self.out_dir, resume=self.resume)
+        self.csv_path: Path | None = self.loggers["csv"].path if csv else None
         if wandb:
-            self.wandb_run = self._start_wandb(wandb_mode, wandb_project)
+            self.loggers["wandb"] = self._start_wandb(wandb_mode, wandb_project)
+        if mlflow:
+            self.loggers["mlflow"] = self._start_mlflow(wandb_project)
 
     # -- public API ------------------------------------------------------------------------------
     @property
     def columns(self) -> list[str]:
         """The CSV header, ``step`` first, then keys in order of first appearance."""
-        return list(self._columns)
+        return self.loggers["csv"].columns if "csv" in self.loggers else [STEP]
 
     @property
     def last_step(self) -> int | None:
         """The step of the last CSV row (None when empty)."""
-        for row in reversed(self._rows):
-            if row.get(STEP, "") != "":
-                return int(float(row[STEP]))
-        return None
+        return self.loggers["csv"].last_step if "csv" in self.loggers else None
+
+    @property
+    def wandb_run(self):
+        """The wandb run (``WandbLogger.experiment``), None without wandb."""
+        return self.loggers["wandb"].experiment if "wandb" in self.loggers else None
 
     def declare(self, keys: Iterable[str]) -> None:
         """Add columns up front (one rewrite now instead of one per new key later)."""
-        new = [k for k in keys if k not in self._columns]
-        if new:
-            self._columns.extend(new)
-            if self.csv_path is not None:
-                self._rewrite()
+        if "csv" in self.loggers:
+            self.loggers["csv"].declare(keys)
 
     def log(self, step: int, metrics: Mapping[str, Any]) -> None:
         """Append one row: ``step`` and ``metrics`` (numbers; non-finite -> blank + warning)."""
@@ -160,7 +161,9 @@ class MetricsLogger:
             key = str(key)
             if key == STEP:
                 raise ValueError(f"{STEP!r} is reserved for the step column")
-            number = _to_number(key, value)
+            number = to_number(key, value)
+            if number is None:
+                raise TypeError(f"metric {key!r} must be a number, got None")
             if not math.isfinite(number):
                 if key not in self._warned:
                     self._warned.add(key)
@@ -168,35 +171,48 @@ class MetricsLogger:
                                   RuntimeWarning, stacklevel=2)
                 number = None
             clean[key] = number
-        if self.csv_path is not None:
-            self._append_csv(step, clean)
+        if "csv" in self.loggers:
+            self.loggers["csv"].log_metrics(clean, step=step)
         finite = {k: v for k, v in clean.items() if v is not None}
-        if self.wandb_run is not None and finite:
-            self.wandb_run.log(finite, step=step)
-        if self._tb_module is not None and finite:
-            tb = self._tensorboard()
-            for key, value in finite.items():
-                tb.add_scalar(key, value, global_step=step)
-            tb.flush()
+        if finite:
+            for name, logger in self._others():
+                logger.log_metrics(finite, step=step)
+                if name == "tensorboard":
+                    logger.flush()
+
+    def log_video(self, name: str, frames, step: int, fps: float = VIDEO_FPS) -> None:
+        """Send ``frames`` (``(T, H, W, 3)`` uint8, a list or array) to the loggers that take videos
+        (wandb, TensorBoard, MLflow; as TorchRL's ``(1, T, 3, H, W)``). A logger that cannot encode it
+        (moviepy or torchcodec missing, ...) is skipped with one warning: the GIF beside the CSV stays."""
+        self._check_open()
+        import numpy as np
+        import torch
+
+        video = torch.from_numpy(np.ascontiguousarray(np.stack(list(frames)), dtype=np.uint8))
+        video = video.permute(0, 3, 1, 2).unsqueeze(0)  # (T, H, W, C) -> (1, T, C, H, W)
+        for backend, logger in self._others():
+            try:
+                logger.log_video(name, video, step=int(step), fps=int(round(fps)))
+            except Exception as err:  # noqa: BLE001 - a video must not end a finished run
+                if f"video:{backend}" not in self._warned:
+                    self._warned.add(f"video:{backend}")
+                    warnings.warn(f"{backend} did not take the video {name!r}: {type(err).__name__}: {err}",
+                                  RuntimeWarning, stacklevel=2)
 
     def truncate_after(self, step: int) -> int:
         """Drop the CSV rows with ``step >= step`` (a resume from a checkpoint at ``step``).
 
-        Returns the number of rows dropped. TensorBoard events from ``step`` on are purged
-        when its writer opens; wandb ignores steps below its last one (offline runs keep them).
+        Returns the number of rows dropped. TensorBoard events from ``step`` on are purged when its
+        writer opens; wandb steps each metric group by ``<group>/step`` and keeps what it has; MLflow
+        starts a new run on every resume.
         """
-        step = int(step)
-        kept = [r for r in self._rows if r.get(STEP, "") == "" or int(float(r[STEP])) < step]
-        dropped = len(self._rows) - len(kept)
-        self._rows = kept
-        if self.csv_path is not None:
-            self._rewrite()
-        if self._tb_module is not None and self._tb is None:
-            self._tb_purge_step = step
+        dropped = self.loggers["csv"].truncate_after(step) if "csv" in self.loggers else 0
+        if self._tensorboard and "tensorboard" not in self.loggers:
+            self._tb_purge_step = int(step)
         return dropped
 
     def close(self) -> None:
-        """Close the CSV, finish the wandb run, close TensorBoard; idempotent."""
+        """Close the CSV, finish the wandb and MLflow runs, close TensorBoard; idempotent."""
         self._close(exit_code=0)
 
     def __enter__(self) -> MetricsLogger:
@@ -205,112 +221,78 @@ class MetricsLogger:
     def __exit__(self, exc_type, exc, tb) -> None:
         self._close(exit_code=0 if exc_type is None else 1)
 
-    # -- CSV ---------------------------------------------------------------------------------------
+    # -- the loggers -------------------------------------------------------------------------------
     def _check_open(self) -> None:
         if self._closed:
             raise RuntimeError("MetricsLogger is closed")
 
-    def _load_existing(self) -> None:
-        with open(self.csv_path, newline="") as f:
-            reader = csv.DictReader(f)
-            header = [c for c in (reader.fieldnames or []) if c]
-            rows = [{k: v for k, v in r.items() if k and v not in (None, "")} for r in reader]
-        self._columns = [STEP] + [c for c in header if c != STEP]
-        self._rows = rows
+    def _others(self):
+        """The loggers besides the CSV (TensorBoard opened on first use, with the resume's purge step)."""
+        if self._tensorboard and "tensorboard" not in self.loggers:
+            self.loggers["tensorboard"] = self._start_tensorboard()
+        return [(name, logger) for name, logger in self.loggers.items() if name != "csv"]
 
-    def _append_csv(self, step: int, clean: Mapping[str, float | int | None]) -> None:
-        row = {STEP: str(step)}
-        row.update({k: _cell(v) for k, v in clean.items()})
-        self._rows.append(row)
-        new = [k for k in clean if k not in self._columns]
-        if new:
-            self._columns.extend(new)
-            self._rewrite()
-            return
-        self._writer.writerow(row)
-        self._sync()
-
-    def _rewrite(self) -> None:
-        """Write header + all rows to a temp file, fsync, swap it in, reopen for appending."""
-        if self._file is not None:
-            self._file.close()
-            self._file = None
-        fd, tmp = tempfile.mkstemp(prefix=".metrics-", suffix=".csv.tmp", dir=self.out_dir)
-        try:
-            with os.fdopen(fd, "w", newline="") as f:
-                writer = csv.DictWriter(f, fieldnames=self._columns, restval="", extrasaction="ignore")
-                writer.writeheader()
-                writer.writerows(self._rows)
-                f.flush()
-                os.fsync(f.fileno())
-            os.replace(tmp, self.csv_path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
-        self._fsync_dir()
-        self._file = open(self.csv_path, "a", newline="")
-        self._writer = csv.DictWriter(self._file, fieldnames=self._columns, restval="",
-                                      extrasaction="ignore")
-
-    def _sync(self) -> None:
-        self._file.flush()
-        os.fsync(self._file.fileno())
-
-    def _fsync_dir(self) -> None:
-        try:
-            fd = os.open(self.out_dir, os.O_RDONLY)
-        except OSError:  # e.g. Windows: directories cannot be opened
-            return
-        try:
-            os.fsync(fd)
-        except OSError:
-            pass
-        finally:
-            os.close(fd)
-
-    # -- wandb / TensorBoard -----------------------------------------------------------------------
     def _start_wandb(self, mode: str, project: str):
         os.environ.setdefault("WANDB_SILENT", "true")
         try:
-            import wandb
+            import wandb  # noqa: F401
+            from torchrl.record.loggers.wandb import WandbLogger
         except Exception as err:  # noqa: BLE001 - a broken install raises more than ImportError
             raise ImportError(f"wandb=True but wandb cannot be imported ({err}); "
                               "pip install wandb or pass wandb=False") from err
         id_file = self.out_dir / "wandb_run_id"
         run_id = id_file.read_text().strip() if self.resume and id_file.exists() else None
-        run = wandb.init(project=project, dir=str(self.out_dir), mode=mode, config=self.config,
-                         id=run_id, resume="allow" if run_id else None)
-        id_file.write_text(run.id)
-        return run
+        # mode goes to wandb.init: WandbLogger(offline=True) would set WANDB_MODE for the whole process
+        logger = WandbLogger(self.out_dir.name, save_dir=str(self.out_dir), id=run_id, project=project,
+                             log_env_packages=False, mode=mode, config=self.config)
+        id_file.write_text(logger.experiment.id)
+        return logger
 
     @staticmethod
-    def _import_tensorboard():
+    def _require_tensorboard() -> None:
         try:
-            from torch.utils.tensorboard import SummaryWriter
+            from torch.utils.tensorboard import SummaryWriter  # noqa: F401
         except Exception as err:  # noqa: BLE001 - torch raises ImportError/ModuleNotFoundError
             raise ImportError(
                 "tensorboard=True needs the 'tensorboard' package, which is not installed "
                 "(pip install tensorboard); log to CSV and/or wandb instead"
             ) from err
-        return SummaryWriter
 
-    def _tensorboard(self):
-        if self._tb is None:
-            self._tb = self._tb_module(log_dir=str(self.out_dir / "tensorboard"),
-                                       purge_step=self._tb_purge_step)
-            if self.config:
-                self._tb.add_text("config", "\n".join(f"{k}: {v}" for k, v in self.config.items()))
-        return self._tb
+    def _start_tensorboard(self):
+        logger = ResumableTensorboardLogger("tensorboard", str(self.out_dir), purge_step=self._tb_purge_step)
+        if self.config:
+            logger.experiment.add_text("config", "\n".join(f"{k}: {v}" for k, v in self.config.items()))
+        return logger
+
+    def _start_mlflow(self, experiment: str):
+        uri = os.environ.get("MLFLOW_TRACKING_URI") or (self.out_dir / "mlruns").resolve().as_uri()
+        if uri.startswith("file:"):  # MLflow 3 refuses its file store unless asked; a run folder is one
+            os.environ.setdefault("MLFLOW_ALLOW_FILE_STORE", "true")
+        try:
+            import mlflow
+            from torchrl.record.loggers.mlflow import MLFlowLogger
+        except Exception as err:  # noqa: BLE001
+            raise ImportError(f"mlflow=True but mlflow cannot be imported ({err}); "
+                              "pip install mlflow-skinny or pass mlflow=False") from err
+        logger = MLFlowLogger(experiment, tracking_uri=uri)
+        mlflow.set_tag("mlflow.runName", self.out_dir.name)
+        if self.config:
+            logger.log_hparams({k: str(v) for k, v in _flat(self.config).items()})
+        return logger
 
     def _close(self, exit_code: int) -> None:
         if self._closed:
             return
         self._closed = True
-        if self._file is not None:
-            self._sync()
-            self._file.close()
-            self._file = None
-        if self.wandb_run is not None:
-            self.wandb_run.finish(exit_code=exit_code)
-        if self._tb is not None:
-            self._tb.close()
+        for name, logger in self.loggers.items():
+            if name == "wandb":
+                logger.experiment.finish(exit_code=exit_code)
+            else:
+                logger.shutdown()
+            if name == "mlflow":  # TorchRL's shutdown leaves the run it started open
+                import mlflow
+
+                mlflow.end_run(status="FINISHED" if exit_code == 0 else "FAILED")
+
+
+__all__ = ["CSV_NAME", "STEP", "MetricsLogger", "flatten_eval_summary", "read_metrics_csv"]

@@ -72,6 +72,7 @@ def main(argv: list[str] | None = None, *, config_path: str | Path | None = None
         save_config(cfg, out / "config.yaml")
     with MetricsLogger(out, csv=bool(cfg.logger.csv), wandb=bool(cfg.logger.wandb), wandb_mode=str(cfg.logger.wandb_mode),
                        wandb_project=str(cfg.logger.wandb_project), tensorboard=bool(cfg.logger.tensorboard),
+                       mlflow=bool(cfg.logger.mlflow),
                        config=to_container(cfg), resume=bool(args.resume)) as logger:
         final = train(cfg, out, logger, checkpoint_dir=out / "checkpoints", resume=bool(args.resume))
     write_json(out / "final_eval.json", final)

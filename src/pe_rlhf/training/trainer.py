@@ -104,14 +104,19 @@ VIDEO_NAME = "test_episode.gif"
 VIDEO_MAX_STEPS = 400
 
 
-def record_test_video(actor, cfg, env_config, path: Path) -> dict:
+def record_test_video(actor, cfg, env_config, path: Path, logger=None, step: int = 0) -> dict:
     """A GIF of the trained agent (deterministic) on the first ``eval.split`` scene, at most
-    ``VIDEO_MAX_STEPS`` steps (40 s of driving); returns where it ended (success, crash, ...)."""
+    ``VIDEO_MAX_STEPS`` steps (40 s of driving), also sent to ``logger.log_video`` when the logger has
+    one (``eval/test_episode`` at ``step``); returns where it ended (success, crash, ...)."""
     from pe_rlhf.envs import scene_seeds
     from pe_rlhf.training.video import record_episode_gif
 
     seed = scene_seeds(str(cfg.eval.split))[0]
-    info = record_episode_gif(TorchRLPolicyAdapter(actor), env_config, seed, path, max_steps=VIDEO_MAX_STEPS)
+    log_video = getattr(logger, "log_video", None)
+    info = record_episode_gif(TorchRLPolicyAdapter(actor), env_config, seed, path, max_steps=VIDEO_MAX_STEPS,
+                              keep_video=log_video is not None)
+    if log_video is not None:
+        log_video("eval/test_episode", info["video"], step=step)
     return {k: info[k] for k in ("path", "steps", "success", "crash_vehicle", "crash_object", "out_of_road")}
 
 
@@ -420,7 +425,8 @@ class _Run:
         final["training"] = c.state_dict()
         torch.save(self.actor.state_dict(), out_dir / "actor.pt")
         if self.cfg.eval.video:
-            final["video"] = record_test_video(self.actor, self.cfg, self.env_config, out_dir / VIDEO_NAME)
+            final["video"] = record_test_video(self.actor, self.cfg, self.env_config, out_dir / VIDEO_NAME,
+                                               self.logger, int(c.frames))
         return final
 
 

@@ -13,13 +13,22 @@ from pe_rlhf.envs import DrivingConfig, make_gym_env
 from pe_rlhf.evaluation.policies import Policy
 
 
-def _to_image(frame: np.ndarray, scale: float) -> Image.Image:
+def _scaled(frame: np.ndarray, scale: float) -> Image.Image:
     img = Image.fromarray(np.asarray(frame, dtype=np.uint8))
     if scale != 1.0:
         size = (max(1, round(img.width * scale)), max(1, round(img.height * scale)))
         img = img.resize(size, Image.Resampling.LANCZOS)
+    return img
+
+
+def _to_image(frame: np.ndarray, scale: float) -> Image.Image:
     # An adaptive palette per frame keeps the road's greys and the cars' colours apart.
-    return img.convert("P", palette=Image.Palette.ADAPTIVE, colors=256)
+    return _scaled(frame, scale).convert("P", palette=Image.Palette.ADAPTIVE, colors=256)
+
+
+def scaled_frames(frames: list[np.ndarray], scale: float = 0.5) -> np.ndarray:
+    """``frames`` downscaled as :func:`write_gif` does, stacked: ``(T, h, w, 3)`` uint8 (a logger's video)."""
+    return np.stack([np.asarray(_scaled(f, scale).convert("RGB")) for f in frames])
 
 
 def write_gif(frames: list[np.ndarray], path: str | os.PathLike, fps: float = 10, scale: float = 0.5) -> Path:
@@ -49,14 +58,16 @@ def record_episode_gif(
     max_steps: int = 300,
     fps: float = 10,
     scale: float = 0.5,
+    keep_video: bool = False,
 ) -> dict[str, Any]:
     """Drive ``policy`` on scene ``scene_seed`` for at most ``max_steps`` steps and save a GIF.
 
     In: a policy (``reset()``, ``policy(obs, env) -> action``), the env config, the scene
-    seed, the GIF path, the step cap, frames per second, the downscale factor. Sets
-    ``SDL_VIDEODRIVER=dummy`` when unset (headless). Out: the last step's ``info`` plus
+    seed, the GIF path, the step cap, frames per second, the downscale factor, whether to return
+    the frames too. Sets ``SDL_VIDEODRIVER=dummy`` when unset (headless). Out: the last step's ``info`` plus
     ``episodic_return``, ``steps``, ``terminated``, ``truncated`` (env horizon or
-    ``max_steps``), ``frames`` and ``path``.
+    ``max_steps``), ``frames`` and ``path``; with ``keep_video``, ``video``: the GIF's frames as
+    ``(T, h, w, 3)`` uint8 (:func:`scaled_frames`).
     """
     os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
     env = make_gym_env(env_config, render_mode="rgb_array")
@@ -74,6 +85,7 @@ def record_episode_gif(
     finally:
         env.close()
     gif = write_gif(frames, path, fps=fps, scale=scale)
+    video = {"video": scaled_frames(frames, scale)} if keep_video else {}
     return {
         **info,
         "episodic_return": episodic_return,
@@ -82,4 +94,5 @@ def record_episode_gif(
         "truncated": bool(truncated or not terminated),
         "frames": len(frames),
         "path": str(gif),
+        **video,
     }
