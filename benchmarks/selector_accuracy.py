@@ -35,7 +35,7 @@ from tqdm import tqdm
 
 from pe_rlhf.envs import make_gym_env
 from pe_rlhf.physics import IDMMobilPolicy, PhysicsConfig
-from pe_rlhf.training.builders import build_mentor, build_physics, build_q_ensemble
+from pe_rlhf.training.builders import build_mentor, build_physics, build_q_ensemble, epsilon_select
 from pe_rlhf.training.checkpoint import find_checkpoint, load_checkpoint
 from pe_rlhf.training.config import driving_config, load_config
 
@@ -92,7 +92,7 @@ def measure(run: Path | str, args, setup=None) -> dict:
     env = make_gym_env(driving_config(cfg))
     mentor, driver, physics = build_mentor(cfg), IDMMobilPolicy(PhysicsConfig()), build_physics(cfg)
     oracle = IDMMobilPolicy(PhysicsConfig(see_obstacles=True))
-    eps_run = float(cfg.selector.epsilon_select)
+    eps_run = epsilon_select(cfg)
     states = []  # (advantage, mentor_fails, physics_fails, scene seed, step)
     differences = []  # a_mentor - a_phy at every takeover state
     bar = tqdm(total=args.max_states, desc=str(getattr(run, "name", run)), leave=False)

@@ -9,6 +9,7 @@ import pytest
 from omegaconf import OmegaConf
 
 from pe_rlhf.envs.config import DrivingConfig
+from pe_rlhf.training.builders import epsilon_select
 from pe_rlhf.training.config import (
     DEFAULTS,
     OPEN_GROUPS,
@@ -52,8 +53,8 @@ def test_defaults_load_and_validate_with_the_paper_values():
     assert (cfg.loss.gamma, cfg.loss.tau, cfg.optim.lr, cfg.replay_buffer.batch_size) == (0.99, 0.005, 1e-4, 1024)
     assert (cfg.collector.learning_starts, cfg.collector.frames_per_batch, cfg.collector.warmup_steps) == (100, 100,
                                                                                                            10000)
-    assert (cfg.loss.gap_coef, cfg.selector.epsilon_select, cfg.loss.psi, cfg.loss.intervention_weight) == (
-        10.0, 1.5, 1.0, 1.0)  # epsilon_select: the authors' code, calibrated on train scenes
+    assert (cfg.loss.gap_coef, epsilon_select(cfg), cfg.loss.psi, cfg.loss.intervention_weight) == (
+        10.0, 1.5, 1.0, 1.0)  # epsilon_select: null, the expert's own (the authors' code)
     assert driving_config(cfg) == DrivingConfig(lane_features=True)  # every Table-1 row uses the lane summary
     assert driving_config(cfg).split == "train"
 
@@ -319,3 +320,14 @@ def test_physics_config_follows_the_switches():
     assert (phy.use_idm, phy.use_mobil, phy.see_obstacles, phy.stop_for_obstacles) == (True, False, True, True)
     assert physics_config(load_config()).stop_for_obstacles  # the default: brakes for obstacles
     assert not physics_config(load_config(overrides=["physics.stop_for_obstacles=false"])).stop_for_obstacles
+
+
+@pytest.mark.parametrize("overrides, expected", [
+    ([], 1.5),  # the packaged expert: the authors' threshold
+    (["selector.value=warmup"], 0.5),  # the paper's table
+    (["selector.value=forecast"], -0.5),  # seconds, calibrated on train scenes
+    (["selector.value=forecast", "selector.epsilon_select=0.25"], 0.25),  # a set value always wins
+])
+def test_epsilon_select_null_takes_the_value_sources_own(overrides, expected):
+    cfg = load_config(overrides=overrides)
+    assert epsilon_select(cfg) == expected
