@@ -220,3 +220,13 @@ def test_physics_module_drives(env):
     batched = TensorDict({"observation": torch.zeros(2, 250)}, [2])
     with pytest.raises(ValueError, match="batch"):
         module(batched)
+
+
+def test_make_env_at_package_level_is_the_torchrl_env():
+    from pe_rlhf.envs import make_env as package_make_env
+    from pe_rlhf.envs.torchrl_env import make_env as module_make_env
+
+    a, b = package_make_env({"split": "train"}), module_make_env({"split": "train"})
+    assert type(a) is type(b) and a.observation_spec == b.observation_spec
+    td_a, td_b = a.reset(scene_seed=3), b.reset(scene_seed=3)
+    assert torch.equal(td_a["observation"], td_b["observation"])

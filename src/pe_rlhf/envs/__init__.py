@@ -24,6 +24,15 @@ def make_gym_env(config: DrivingConfig | dict | None = None, render_mode: str | 
     return DrivingEnv(config, render_mode=render_mode)
 
 
+def make_env(config: DrivingConfig | dict | None = None, render_mode: str | None = None, episode_stats: bool = False):
+    """The TorchRL driving env, a ``TransformedEnv`` ready for more transforms (interventions):
+    :func:`pe_rlhf.envs.torchrl_env.make_env`, imported on first use so that the gymnasium side and the command
+    line start without TorchRL."""
+    from pe_rlhf.envs.torchrl_env import make_env as make_torchrl_env
+
+    return make_torchrl_env(config, render_mode=render_mode, episode_stats=episode_stats)
+
+
 register()
 
 __all__ = [
@@ -33,6 +42,7 @@ __all__ = [
     "TRAIN_SEEDS",
     "action_to_controls",
     "controls_to_action",
+    "make_env",
     "make_gym_env",
     "parse_seeds",
     "register",
