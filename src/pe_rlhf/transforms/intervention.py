@@ -31,33 +31,21 @@ other TorchRL env over a gymnasium env (e.g. ``GymEnv("Pendulum-v1")``).
 
 from __future__ import annotations
 
-import warnings
-
-import numpy as np
 import torch
 from tensordict import TensorDictBase
-from torchrl.data import Composite, Unbounded
+from torchrl.data import Composite
 from torchrl.envs import EnvBase, Transform
 
 from pe_rlhf.envs.torchrl_env import unwrap
-
-OUT_KEYS = ("behavior_action", "intervention", "intervention_start", "intervention_cost", "mentor_action",
-            "physics_action", "mentor_selected")
-ZERO_NORM = 1e-6
-
-
-def takeover_cost(agent_action: np.ndarray, executed_action: np.ndarray) -> float:
-    """``1 - cos(a_AV, a_exec)``, in [0, 2]; 1 when either action is (near) zero or not finite (no
-    direction to compare)."""
-    na, ne = float(np.linalg.norm(agent_action)), float(np.linalg.norm(executed_action))
-    if not (ZERO_NORM <= na < np.inf and ZERO_NORM <= ne < np.inf):  # also False for NaN
-        return 1.0
-    cos = float(np.dot(agent_action, executed_action)) / (na * ne)
-    return float(1.0 - np.clip(cos, -1.0, 1.0))  # rounding can push |cos| a hair past 1
+from pe_rlhf.transforms.takeover_core import (OUT_KEYS, ZERO_NORM, TakeoverCore, takeover_cost, takeover_specs,
+                                              takeover_tensors)
 
 
 class InterventionTransform(Transform):
     """Mentor takeover with optional physics proposal and hybrid selection (see the module docstring).
+
+    The decision itself is :class:`~pe_rlhf.transforms.takeover_core.TakeoverCore`'s (``core``), shared
+    with the gymnasium face :class:`~pe_rlhf.wrappers.InterventionWrapper`.
 
     Args:
         mentor: any :class:`~pe_rlhf.mentors.base.Mentor`.
@@ -74,20 +62,27 @@ class InterventionTransform(Transform):
 
     def __init__(self, mentor, selector=None, physics=None, warmup_steps: int = 0, warmup_driver=None):
         super().__init__(in_keys=[], out_keys=list(OUT_KEYS))
-        if (selector is None) != (physics is None):
-            raise ValueError("InterventionTransform needs both selector and physics (PE-RLHF) or neither (HACO)")
-        if warmup_steps < 0:
-            raise ValueError(f"warmup_steps={warmup_steps} must be >= 0")
+        self.core = TakeoverCore(mentor, selector, physics, warmup_steps, warmup_driver,
+                                 owner="InterventionTransform")
+        # The same objects as the core's; attributes of the module as before (a selector is a submodule).
         self.mentor, self.selector, self.physics = mentor, selector, physics
-        if warmup_driver is not None and not callable(warmup_driver):
-            raise TypeError(f"warmup_driver must be a policy driver(observation, env) -> action, got "
-                            f"{type(warmup_driver).__name__}")
-        self.warmup_steps = int(warmup_steps)
-        self.warmup_driver = warmup_driver
-        self.total_steps = 0
-        self._in_takeover = False
-        self._previous_choice = False  # the selector's last choice (mentor?) in the current takeover
-        self._pending: dict | None = None
+
+    @property
+    def warmup_steps(self) -> int:
+        return self.core.warmup_steps
+
+    @property
+    def warmup_driver(self):
+        return self.core.warmup_driver
+
+    @property
+    def total_steps(self) -> int:
+        """Steps executed over the transform's life (the warm-up counts them); set on a resumed run."""
+        return self.core.total_steps
+
+    @total_steps.setter
+    def total_steps(self, value: int) -> None:
+        self.core.total_steps = int(value)
 
     @property
     def driving_env(self):
@@ -98,96 +93,31 @@ class InterventionTransform(Transform):
         return getattr(gym_env, "unwrapped", gym_env) if gym_env is not None else sim
 
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
-        self._in_takeover = False
-        self._pending = None
-        self.mentor.reset(self.driving_env)
-        if hasattr(self.warmup_driver, "reset"):
-            self.warmup_driver.reset()
+        self.core.reset(self.driving_env)
         # Defaults at reset, so reset and step outputs stack in a rollout.
         for key, spec in self.transform_observation_spec(Composite()).items():
             tensordict_reset.set(key, spec.zero())
         return tensordict_reset
 
-    def _decide(self, observation: torch.Tensor, agent_action: np.ndarray) -> dict:
-        env = self.driving_env
-        warmup = self.total_steps < self.warmup_steps
-        takeover, mentor_action = self.mentor(env, agent_action)
-        mentor_action = np.asarray(mentor_action, dtype=np.float32)
-        physics_action = np.zeros_like(mentor_action)
-        mentor_selected = bool(takeover)
-        executed = agent_action
-        if warmup and self.warmup_driver is not None:
-            executed = self._driver_action(observation, env, mentor_action.shape)
-            takeover, mentor_selected = True, False
-        elif warmup:
-            takeover, executed, mentor_selected = True, mentor_action, True
-        elif takeover:
-            executed = mentor_action
-            if self.selector is not None:
-                physics_action = np.asarray(self.physics(env), dtype=np.float32)
-                previous = self._previous_choice if self._in_takeover else None
-                hybrid, chosen = self.selector.select(observation, torch.as_tensor(mentor_action),
-                                                      torch.as_tensor(physics_action), previous, env=env)
-                executed, mentor_selected = hybrid.numpy().astype(np.float32), bool(chosen.item())
-        show = getattr(self.mentor, "show_control", None)
-        if show is not None and takeover and not warmup:  # a person's window shows who drives now
-            show("HUMAN" if mentor_selected else "PHYSICS")
-        start = bool(takeover) and not self._in_takeover
-        return {
-            "behavior_action": executed,
-            "intervention": bool(takeover),
-            "intervention_start": start,
-            "intervention_cost": takeover_cost(agent_action, executed) if start else 0.0,
-            "mentor_action": mentor_action,
-            "physics_action": physics_action,
-            "mentor_selected": mentor_selected and bool(takeover),
-        }
-
-    def _driver_action(self, observation: torch.Tensor, env, shape: tuple[int, ...]) -> np.ndarray:
-        obs = observation.detach().cpu().numpy().astype(np.float32)
-        action = np.asarray(self.warmup_driver(obs, env), dtype=np.float32)
-        if action.shape != shape or not np.isfinite(action).all():
-            raise ValueError(f"warmup_driver returned {action.tolist()} (shape {action.shape}); expected a finite "
-                             f"action of shape {shape}")
-        return action
-
     def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase:
         agent_action = tensordict.get("action")
-        if agent_action.dim() != 1:
-            raise ValueError(f"InterventionTransform drives one env; got action shape {tuple(agent_action.shape)}")
-        a_av = agent_action.detach().cpu().numpy().astype(np.float32)
-        if not np.isfinite(a_av).all():
-            warnings.warn(f"InterventionTransform: the agent proposed {a_av.tolist()}; its non-finite entries "
-                          "are executed as 0", RuntimeWarning, stacklevel=2)
-            a_av = np.where(np.isfinite(a_av), a_av, np.float32(0.0))
-        self._pending = self._decide(tensordict.get("observation"), a_av)
-        tensordict.set("action", torch.as_tensor(self._pending["behavior_action"], dtype=agent_action.dtype))
+        d = self.core.decide(self.driving_env, tensordict.get("observation"), agent_action.detach().cpu().numpy())
+        tensordict.set("action", torch.as_tensor(d.behavior_action, dtype=agent_action.dtype))
         return tensordict
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
-        d = self._pending
-        if d is None:
-            raise RuntimeError("InterventionTransform._step without a decision: was the action set?")
-        self._in_takeover = d["intervention"]
-        self._previous_choice = d["mentor_selected"]
-        self.total_steps += 1
-        for key in ("behavior_action", "mentor_action", "physics_action"):
-            next_tensordict.set(key, torch.as_tensor(d[key], dtype=torch.float32))
-        for key in ("intervention", "intervention_start", "mentor_selected"):
-            next_tensordict.set(key, torch.tensor([d[key]], dtype=torch.bool))
-        next_tensordict.set("intervention_cost", torch.tensor([d["intervention_cost"]], dtype=torch.float32))
-        self._pending = None
+        next_tensordict.update(takeover_tensors(self.core.commit()))
         return next_tensordict
 
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:
         action_shape = self.parent.full_action_spec["action"].shape if self.parent is not None else (2,)
-        for key in ("behavior_action", "mentor_action", "physics_action"):
-            observation_spec[key] = Unbounded(action_shape, dtype=torch.float32)
-        for key in ("intervention", "intervention_start", "mentor_selected"):
-            observation_spec[key] = Unbounded((1,), dtype=torch.bool)
-        observation_spec["intervention_cost"] = Unbounded((1,), dtype=torch.float32)
+        for key, spec in takeover_specs(action_shape).items():
+            observation_spec[key] = spec
         return observation_spec
 
     def state_dict_extra(self) -> dict:
         """Counters and mentor state for checkpoints."""
         return {"total_steps": self.total_steps, "mentor": self.mentor.state_dict()}
+
+
+__all__ = ["OUT_KEYS", "ZERO_NORM", "InterventionTransform", "takeover_cost"]

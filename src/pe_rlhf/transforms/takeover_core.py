@@ -1,0 +1,179 @@
+"""``TakeoverCore``: one step of the takeover decision, in plain Python, for every face that drives a simulator.
+
+:class:`~pe_rlhf.transforms.InterventionTransform` (TorchRL) and :class:`~pe_rlhf.wrappers.InterventionWrapper`
+(gymnasium) both call it, so a takeover is decided by one implementation: per step, ``decide`` (before the
+simulator moves) asks the mentor, during a PE-RLHF takeover the physics policy and the selector, handles the
+warm-up, the takeover start and the cosine takeover cost; ``commit`` (after the simulator moved) advances the
+takeover state and the step counter. A decision is a :class:`TakeoverStep`, whose fields are named as the
+tensordict keys the transform writes (:data:`OUT_KEYS`, specs from :func:`takeover_specs`).
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torchrl.data import Unbounded
+
+OUT_KEYS = ("behavior_action", "intervention", "intervention_start", "intervention_cost", "mentor_action",
+            "physics_action", "mentor_selected")
+ACTION_KEYS = ("behavior_action", "mentor_action", "physics_action")  # float32 (A,)
+FLAG_KEYS = ("intervention", "intervention_start", "mentor_selected")  # bool (1,)
+COST_KEY = "intervention_cost"  # float32 (1,)
+ZERO_NORM = 1e-6
+
+
+def takeover_cost(agent_action: np.ndarray, executed_action: np.ndarray) -> float:
+    """``1 - cos(a_AV, a_exec)``, in [0, 2]; 1 when either action is (near) zero or not finite (no
+    direction to compare)."""
+    na, ne = float(np.linalg.norm(agent_action)), float(np.linalg.norm(executed_action))
+    if not (ZERO_NORM <= na < np.inf and ZERO_NORM <= ne < np.inf):  # also False for NaN
+        return 1.0
+    cos = float(np.dot(agent_action, executed_action)) / (na * ne)
+    return float(1.0 - np.clip(cos, -1.0, 1.0))  # rounding can push |cos| a hair past 1
+
+
+def takeover_specs(action_shape) -> dict:
+    """The spec of each of :data:`OUT_KEYS` for actions of shape ``action_shape``."""
+    specs = {key: Unbounded(action_shape, dtype=torch.float32) for key in ACTION_KEYS}
+    specs.update({key: Unbounded((1,), dtype=torch.bool) for key in FLAG_KEYS})
+    specs[COST_KEY] = Unbounded((1,), dtype=torch.float32)
+    return specs
+
+
+def takeover_tensors(values) -> dict[str, torch.Tensor]:
+    """:data:`OUT_KEYS` of a mapping (or a :class:`TakeoverStep`) as the tensors of :func:`takeover_specs`."""
+    get = values.get if isinstance(values, dict) else lambda key: getattr(values, key)
+    out = {key: torch.as_tensor(get(key), dtype=torch.float32) for key in ACTION_KEYS}
+    out.update({key: torch.tensor([bool(get(key))], dtype=torch.bool) for key in FLAG_KEYS})
+    out[COST_KEY] = torch.tensor([float(get(COST_KEY))], dtype=torch.float32)
+    return out
+
+
+@dataclass(frozen=True)
+class TakeoverStep:
+    """One step's decision; fields but ``agent_action`` are the transform's keys (module docstring of
+    :mod:`pe_rlhf.transforms.intervention`). Actions are float32 ``(A,)``."""
+
+    agent_action: np.ndarray  # the proposal the mentor and the cost saw (non-finite entries as 0)
+    behavior_action: np.ndarray  # executed
+    intervention: bool
+    intervention_start: bool
+    intervention_cost: float
+    mentor_action: np.ndarray
+    physics_action: np.ndarray  # zeros outside a PE-RLHF takeover
+    mentor_selected: bool
+
+
+class TakeoverCore:
+    """The takeover state machine of one env (see the module docstring); arguments as
+    :class:`~pe_rlhf.transforms.InterventionTransform`'s.
+
+    ``owner`` names the face in errors and warnings. ``env`` arguments are the simulator handed to the
+    mentor, the physics policy and the selector (a ``DrivingEnv``, or a gymnasium env's ``unwrapped``).
+    """
+
+    def __init__(self, mentor, selector=None, physics=None, warmup_steps: int = 0, warmup_driver=None,
+                 owner: str = "TakeoverCore"):
+        if (selector is None) != (physics is None):
+            raise ValueError(f"{owner} needs both selector and physics (PE-RLHF) or neither (HACO)")
+        if warmup_steps < 0:
+            raise ValueError(f"warmup_steps={warmup_steps} must be >= 0")
+        if warmup_driver is not None and not callable(warmup_driver):
+            raise TypeError(f"warmup_driver must be a policy driver(observation, env) -> action, got "
+                            f"{type(warmup_driver).__name__}")
+        self.mentor, self.selector, self.physics = mentor, selector, physics
+        self.warmup_steps = int(warmup_steps)
+        self.warmup_driver = warmup_driver
+        self.owner = owner
+        self.total_steps = 0
+        self._in_takeover = False
+        self._previous_choice = False  # the selector's last choice (mentor?) in the current takeover
+        self.pending: TakeoverStep | None = None
+
+    def reset(self, env) -> None:
+        """Episode start (after the simulator's reset): no takeover carries over."""
+        self._in_takeover = False
+        self.pending = None
+        self.mentor.reset(env)
+        if hasattr(self.warmup_driver, "reset"):
+            self.warmup_driver.reset()
+
+    def decide(self, env, observation, agent_action) -> TakeoverStep:
+        """This step's decision for the agent's proposal ``agent_action`` ``(A,)`` at ``observation`` ``(O,)``
+        (tensor or array); kept as ``pending`` until :meth:`commit`."""
+        a_av = self._sanitized(agent_action)
+        warmup = self.total_steps < self.warmup_steps
+        takeover, mentor_action = self.mentor(env, a_av)
+        mentor_action = np.asarray(mentor_action, dtype=np.float32)
+        physics_action = np.zeros_like(mentor_action)
+        mentor_selected = bool(takeover)
+        executed = a_av
+        if warmup and self.warmup_driver is not None:
+            executed = self._driver_action(observation, env, mentor_action.shape)
+            takeover, mentor_selected = True, False
+        elif warmup:
+            takeover, executed, mentor_selected = True, mentor_action, True
+        elif takeover:
+            executed = mentor_action
+            if self.selector is not None:
+                physics_action = np.asarray(self.physics(env), dtype=np.float32)
+                executed, mentor_selected = self._select(env, observation, mentor_action, physics_action)
+        show = getattr(self.mentor, "show_control", None)
+        if show is not None and takeover and not warmup:  # a person's window shows who drives now
+            show("HUMAN" if mentor_selected else "PHYSICS")
+        start = bool(takeover) and not self._in_takeover
+        self.pending = TakeoverStep(
+            agent_action=a_av, behavior_action=executed, intervention=bool(takeover), intervention_start=start,
+            intervention_cost=takeover_cost(a_av, executed) if start else 0.0, mentor_action=mentor_action,
+            physics_action=physics_action, mentor_selected=mentor_selected and bool(takeover))
+        return self.pending
+
+    def commit(self) -> TakeoverStep:
+        """The simulator executed the pending decision: advance the takeover state; returns the decision."""
+        d = self.pending
+        if d is None:
+            raise RuntimeError(f"{self.owner}: a step without a decision (was the action set?)")
+        self._in_takeover = d.intervention
+        self._previous_choice = d.mentor_selected
+        self.total_steps += 1
+        self.pending = None
+        return d
+
+    def _sanitized(self, agent_action) -> np.ndarray:
+        a_av = np.array(agent_action, dtype=np.float32)  # a copy: the caller's buffer may be reused
+        if a_av.ndim != 1:
+            raise ValueError(f"{self.owner} drives one env; got action shape {tuple(a_av.shape)}")
+        if not np.isfinite(a_av).all():  # a diverged actor: never executed as proposed
+            warnings.warn(f"{self.owner}: the agent proposed {a_av.tolist()}; its non-finite entries "
+                          "are executed as 0", RuntimeWarning, stacklevel=4)
+            a_av = np.where(np.isfinite(a_av), a_av, np.float32(0.0))
+        return a_av
+
+    def _select(self, env, observation, mentor_action, physics_action) -> tuple[np.ndarray, bool]:
+        previous = self._previous_choice if self._in_takeover else None
+        # Only a value source that forecasts from the simulator hears it (a selector may not take ``env``).
+        kwargs = {"env": env} if getattr(getattr(self.selector, "q_ensemble", None), "needs_env", False) else {}
+        hybrid, chosen = self.selector.select(_as_tensor(observation), torch.as_tensor(mentor_action),
+                                              torch.as_tensor(physics_action), previous, **kwargs)
+        return hybrid.numpy().astype(np.float32), bool(chosen.item())
+
+    def _driver_action(self, observation, env, shape: tuple[int, ...]) -> np.ndarray:
+        obs = _as_tensor(observation).detach().cpu().numpy().astype(np.float32)
+        action = np.asarray(self.warmup_driver(obs, env), dtype=np.float32)
+        if action.shape != shape or not np.isfinite(action).all():
+            raise ValueError(f"warmup_driver returned {action.tolist()} (shape {action.shape}); expected a finite "
+                             f"action of shape {shape}")
+        return action
+
+
+def _as_tensor(observation) -> torch.Tensor:
+    """A tensor observation as it is (the transform's); an array one (a gymnasium env's) as float32."""
+    if isinstance(observation, torch.Tensor):
+        return observation
+    return torch.as_tensor(np.asarray(observation, dtype=np.float32))
+
+
+__all__ = ["OUT_KEYS", "TakeoverCore", "TakeoverStep", "takeover_cost", "takeover_specs", "takeover_tensors"]

@@ -1,0 +1,129 @@
+"""The takeover machinery as a gymnasium wrapper, and the TorchRL reader of what it reports.
+
+:class:`InterventionWrapper` runs :class:`~pe_rlhf.transforms.takeover_core.TakeoverCore`, the decision
+logic of :class:`~pe_rlhf.transforms.InterventionTransform`, around any gymnasium env: ``step(action)``
+executes the agent's action or the takeover's (the mentor's, or the physics policy's where the selector
+picks it) and reports it in ``info``:
+
+========================  ========================  ===============================================
+``info`` key              TorchRL key               value
+========================  ========================  ===============================================
+``is_intervention``       (gym-hil's flag)          bool: the mentor held control this step
+``teleop_action``         ``behavior_action``       float32 ``(A,)``: the executed action (the
+                                                    takeover's while ``is_intervention``; gym-hil's)
+``intervention``          ``intervention``          bool, as ``is_intervention``
+``intervention_start``    ``intervention_start``    bool: first step of a takeover
+``intervention_cost``     ``intervention_cost``     float: ``1 - cos(a_AV, a_exec)`` at a start, else 0
+``mentor_action``         ``mentor_action``         float32 ``(A,)``: the mentor's proposal (every step)
+``physics_action``        ``physics_action``        float32 ``(A,)``, only with physics: its proposal
+                                                    in a takeover, else zeros (TorchRL: zeros without)
+``mentor_selected``       ``mentor_selected``       bool: the mentor's action ran in a takeover
+``agent_action``          (the root ``action``)     float32 ``(A,)``: the agent's proposal as given
+========================  ========================  ===============================================
+
+:class:`InfoToTakeoverKeys` is the TorchRL side: an info-dict reader for ``GymWrapper``/``GymEnv`` that
+writes those keys as :class:`~pe_rlhf.transforms.InterventionTransform` does (same names, dtypes, shapes;
+zeros/False at reset), so a TorchRL pipeline over a wrapped gymnasium env gets the transform's tensordict.
+"""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import torch
+from tensordict import TensorDictBase
+from torchrl.data import Composite
+from torchrl.envs.gym_like import BaseInfoDictReader
+
+from pe_rlhf.transforms.takeover_core import OUT_KEYS, TakeoverCore, TakeoverStep, takeover_specs, takeover_tensors
+
+# TorchRL key <- info key (the rest of OUT_KEYS keep their names).
+INFO_KEY = {key: key for key in OUT_KEYS} | {"behavior_action": "teleop_action"}
+
+
+class InterventionWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
+    """A mentor (and, in PE-RLHF, physics + selector) takes over the agent's action in a gymnasium env.
+
+    The same arguments and decisions as :class:`~pe_rlhf.transforms.InterventionTransform` (``mentor``,
+    ``physics``, ``selector``, ``warmup_steps``, ``warmup_driver``); the mentor and physics get the
+    wrapped env's ``unwrapped`` (e.g. ``DrivingEnv``, ``PendulumEnv``). Actions are 1-D; the selector and
+    a warm-up driver see the last observation returned. ``info`` keys: the module docstring.
+
+    The arguments are recorded in ``env.spec`` as gymnasium's wrappers do, so ``env.spec.make()`` rebuilds
+    the stack (the rebuilt wrapper shares these mentor, physics and selector objects).
+    """
+
+    def __init__(self, env: gym.Env, mentor, physics=None, selector=None, warmup_steps: int = 0,
+                 warmup_driver=None):
+        gym.utils.RecordConstructorArgs.__init__(self, mentor=mentor, physics=physics, selector=selector,
+                                                 warmup_steps=warmup_steps, warmup_driver=warmup_driver)
+        gym.Wrapper.__init__(self, env)
+        self.core = TakeoverCore(mentor, selector, physics, warmup_steps, warmup_driver,
+                                 owner="InterventionWrapper")
+        self._observation = None
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        obs, info = self.env.reset(seed=seed, options=options)
+        self.core.reset(self.unwrapped)
+        self._observation = obs
+        return obs, info
+
+    def step(self, action):
+        if self._observation is None:
+            raise RuntimeError("InterventionWrapper: call reset() before step()")
+        d = self.core.decide(self.unwrapped, self._observation, action)
+        dtype = getattr(self.action_space, "dtype", None)
+        executed = d.behavior_action.astype(np.float32 if dtype is None else dtype)
+        obs, reward, terminated, truncated, info = self.env.step(executed)
+        self.core.commit()
+        self._observation = obs
+        return obs, reward, terminated, truncated, {**info, **self._info(d, action)}
+
+    def _info(self, d: TakeoverStep, action) -> dict:
+        """The ``info`` entries of decision ``d`` for the proposal ``action``."""
+        info = {
+            "is_intervention": d.intervention,
+            "teleop_action": d.behavior_action.copy(),
+            "intervention": d.intervention,
+            "intervention_start": d.intervention_start,
+            "intervention_cost": d.intervention_cost,
+            "mentor_action": d.mentor_action.copy(),
+            "mentor_selected": d.mentor_selected,
+            "agent_action": np.array(action, dtype=np.float32),
+        }
+        if self.core.physics is not None:
+            info["physics_action"] = d.physics_action.copy()
+        return info
+
+    @property
+    def total_steps(self) -> int:
+        """Steps executed through the wrapper (the warm-up counts them)."""
+        return self.core.total_steps
+
+
+class InfoToTakeoverKeys(BaseInfoDictReader):
+    """Reads :class:`InterventionWrapper`'s ``info`` into :class:`~pe_rlhf.transforms.InterventionTransform`'s keys.
+
+    ``GymWrapper(InterventionWrapper(env, mentor)).set_info_dict_reader(InfoToTakeoverKeys(env.action_space.shape))``
+    writes ``behavior_action``, ``intervention``, ``intervention_start``, ``intervention_cost``,
+    ``mentor_action``, ``physics_action`` and ``mentor_selected`` (mapping: the module docstring) with the
+    transform's specs; a key the info lacks (a reset, or ``physics_action`` without physics) is zeros.
+    The root ``action`` keeps the agent's proposal, as under the transform. One env (unbatched info).
+    """
+
+    def __init__(self, action_shape=(2,)):
+        self._specs = Composite(takeover_specs(torch.Size(action_shape)), shape=[])
+
+    def __call__(self, info_dict: dict, tensordict: TensorDictBase) -> TensorDictBase:
+        specs = self._specs
+        values = {key: info_dict[INFO_KEY[key]] if INFO_KEY[key] in info_dict else specs[key].zero()
+                  for key in OUT_KEYS}
+        tensordict.update(takeover_tensors(values))
+        return tensordict
+
+    @property
+    def info_spec(self) -> Composite:
+        return self._specs
+
+
+__all__ = ["INFO_KEY", "InfoToTakeoverKeys", "InterventionWrapper"]
