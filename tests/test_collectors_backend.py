@@ -31,7 +31,8 @@ TOTAL_FRAMES = 300  # 6 batches of 50 (25 per worker)
 
 @pytest.fixture(scope="module")
 def multisync_run(one_thread_module):
-    cfg = load_config(overrides=MULTISYNC + ["collector.warmup_steps=2", "selector.epsilon_select=-1e9"])
+    cfg = load_config(overrides=MULTISYNC + ["collector.warmup_steps=2", "selector.value=expert",  # weights to push
+                                             "selector.epsilon_select=-1e9"])
     ensemble, actor = builders.build_q_ensemble(cfg), builders.build_actor(cfg)
     loss, soft_update = builders.build_loss(cfg, actor)
     optimizers = builders.build_optimizers(cfg, loss)

@@ -54,7 +54,8 @@ def test_defaults_load_and_validate_with_the_paper_values():
     assert (cfg.collector.learning_starts, cfg.collector.frames_per_batch, cfg.collector.warmup_steps) == (100, 100,
                                                                                                            10000)
     assert (cfg.loss.gap_coef, epsilon_select(cfg), cfg.loss.psi, cfg.loss.intervention_weight) == (
-        10.0, 1.5, 1.0, 1.0)  # epsilon_select: null, the expert's own (the authors' code)
+        10.0, -0.5, 1.0, 1.0)  # epsilon_select: null, the default value source's own (forecast: -0.5 s)
+    assert cfg.selector.value == "forecast"
     assert driving_config(cfg) == DrivingConfig(lane_features=True)  # every Table-1 row uses the lane summary
     assert driving_config(cfg).split == "train"
 
@@ -323,7 +324,8 @@ def test_physics_config_follows_the_switches():
 
 
 @pytest.mark.parametrize("overrides, expected", [
-    ([], 1.5),  # the packaged expert: the authors' threshold
+    ([], -0.5),  # the default, the physics forecast: seconds
+    (["selector.value=expert"], 1.5),  # the packaged expert: the authors' threshold
     (["selector.value=warmup"], 0.5),  # the paper's table
     (["selector.value=forecast"], -0.5),  # seconds, calibrated on train scenes
     (["selector.value=forecast", "selector.epsilon_select=0.25"], 0.25),  # a set value always wins

@@ -44,7 +44,7 @@ DEFAULTS: dict[str, Any] = {
     "env": {"lane_features": True},
     "mentor": {"name": "professional", "seed": 0, "kwargs": {}},
     "physics": {"enabled": True, "see_obstacles": False, "stop_for_obstacles": True, "use_idm": True, "use_mobil": True},
-    "selector": {"enabled": True, "value": "expert", "epsilon_select": None, "variance_threshold": None,
+    "selector": {"enabled": True, "value": "forecast", "epsilon_select": None, "variance_threshold": None,
                  "switch_margin": None, "num_members": 5,
                  "hidden": [256, 256], "warmup_fit_steps": 3000, "refresh_every": 0, "refresh_steps": 500,
                  "refresh_data": "warmup",
