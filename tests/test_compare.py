@@ -105,8 +105,10 @@ def test_mean_and_population_std_over_seeds_exactly(haco_dir, tmp_path):
     paths, md, notes = write_comparison(tmp_path / "out", runs=[f"HACO={haco_dir}"], evaluations=[f"={ev}"])
     assert notes == [f"skipped unfinished run {haco_dir / 'seed_2'} (no final_eval.json)"]
     row = _md_rows(md)["HACO"]
-    assert row == ["HACO", "2", "0.30 ± 0.10", "1000 ± 0", "3.0 ± 1.0", "6.00 ± 2.00", "150.00 ± 50.00",
-                   "0.60 ± 0.10", "0.30 ± 0.10", "60.00 ± 10.00", "35.00 ± 5.00", "2.00 ± 1.00"]
+    # two seeds: the 95% bootstrap CI of the mean is [min, max] = mean -/+ the population std
+    assert row == ["HACO", "2", "0.30 [0.20, 0.40]", "1000 [1000, 1000]", "3.0 [2.0, 4.0]", "6.00 [4.00, 8.00]",
+                   "150.00 [100.00, 200.00]", "0.60 [0.50, 0.70]", "0.30 [0.20, 0.40]", "60.00 [50.00, 70.00]",
+                   "35.00 [30.00, 40.00]", "2.00 [1.00, 3.00]"]
     table = _csv(paths["table_csv"])
     haco = table["HACO"]
     assert (haco["kind"], haco["seeds"]) == ("trained", "2")
@@ -117,6 +119,8 @@ def test_mean_and_population_std_over_seeds_exactly(haco_dir, tmp_path):
     for key, (mean, std) in expected.items():
         assert math.isclose(float(haco[f"{key}_mean"]), mean) and math.isclose(float(haco[f"{key}_std"]), std,
                                                                                 abs_tol=1e-12), key
+        assert math.isclose(float(haco[f"{key}_lo"]), mean - std, abs_tol=1e-9), key
+        assert math.isclose(float(haco[f"{key}_hi"]), mean + std, abs_tol=1e-9), key
     assert haco["sources"] == f"{haco_dir / 'seed_0'};{haco_dir / 'seed_1'}"
 
 

@@ -73,7 +73,7 @@ def test_named_sweep_configs_load_and_validate():
         cells = expand(spec)
         check_cell_configs(cells)
         counts[spec.name] = len(cells)
-    assert counts == {"claims": 2 * 2 * 5 + 5, "epsilon_sensitivity": 6 * 3 * 3 + 3, "loss_ablations": 15, "lower_bound": 4 * 2 * 3 + 3,
+    assert counts == {"claims": 2 * 2 * 5 + 5, "claims_forecast": 2 * 5, "epsilon_sensitivity": 6 * 3 * 3 + 3, "loss_ablations": 15, "lower_bound": 4 * 2 * 3 + 3,
                       "mentor_proficiency": 12, "physics_ablation": 9 + 3, "warmup": 2 * 15}
 
 
@@ -213,21 +213,27 @@ def test_summary_aggregates_seeds_exactly(tmp_path):
     assert [(r["method"], r["mentor"], r["parameter"], r["seeds"], r["cells"]) for r in table] == [
         ("pe-rlhf", "amateur", "epsilon_select=0.5", 2, 3), ("idm-mobil", "-", "-", 3, 3)]
     pe_row, idm_row = table
-    assert pe_row["success_rate"] == {"mean": pytest.approx(0.3), "std": pytest.approx(0.1), "n": 2}
-    assert pe_row["train_safety_violations"] == {"mean": 15.0, "std": 5.0, "n": 2}
+    # two seeds: every bootstrap resample's mean lies between them, so the 95% CI is [min, max]
+    assert pe_row["success_rate"] == {"mean": pytest.approx(0.3), "std": pytest.approx(0.1), "lo": pytest.approx(0.2),
+                                      "hi": pytest.approx(0.4), "n": 2}
+    assert pe_row["train_safety_violations"] == {"mean": 15.0, "std": 5.0, "lo": 10.0, "hi": 20.0, "n": 2}
     assert pe_row["takeover_data_usage"]["mean"] == pytest.approx(0.25)
-    assert idm_row["success_rate"] == {"mean": pytest.approx(0.3), "std": 0.0, "n": 3}
+    assert idm_row["success_rate"] == {"mean": pytest.approx(0.3), "std": 0.0, "lo": pytest.approx(0.3),
+                                       "hi": pytest.approx(0.3), "n": 3}  # seeds agree: a point
     assert idm_row["train_safety_violations"]["n"] == 0  # evaluation only: no training numbers
     assert mean_std([1.0, float("nan"), 3.0]) == {"mean": 2.0, "std": 1.0, "n": 2}
 
     paths = write_summary(tmp_path, cells, metrics, title="t", plots=True)
     md = (tmp_path / "summary.md").read_text()
-    assert "| pe-rlhf | amateur | epsilon_select=0.5 | 2/3 | 0.30 ± 0.10 | 0.70 ± 0.10 | 15.0 ± 5.0 | 0.25 ± 0.05 |" in md
-    assert "| idm-mobil | - | - | 3/3 | 0.30 ± 0.00 | 0.70 ± 0.00 | — | — |" in md
+    assert ("| pe-rlhf | amateur | epsilon_select=0.5 | 2/3 | 0.30 [0.20, 0.40] | 0.70 [0.60, 0.80] | "
+            "15.0 [10.0, 20.0] | 0.25 [0.20, 0.30] |") in md
+    assert "| idm-mobil | - | - | 3/3 | 0.30 [0.30, 0.30] | 0.70 [0.70, 0.70] | — | — |" in md
     with open(tmp_path / "summary.csv") as f:
         rows = list(csv.DictReader(f))
     assert float(rows[0]["success_rate_mean"]) == pytest.approx(0.3) and float(rows[0]["success_rate_std"]) == \
         pytest.approx(0.1) and math.isnan(float(rows[1]["train_safety_violations_mean"]))
+    assert (float(rows[0]["success_rate_lo"]), float(rows[0]["success_rate_hi"])) == pytest.approx((0.2, 0.4))
+    assert math.isnan(float(rows[1]["train_safety_violations_lo"]))
     with open(tmp_path / "cells.csv") as f:
         statuses = [r["status"] for r in csv.DictReader(f)]
     assert statuses == ["finished", "finished", "unfinished", "finished", "finished", "finished"]

@@ -190,6 +190,29 @@ def test_plots_with_missing_columns(tmp_path):
     assert set(plot_learning_curves(only_train / "metrics.csv", only_train)) == {"training"}
 
 
+def test_training_panel_marks_the_end_of_warmup(tmp_path):
+    import matplotlib.pyplot as plt
+
+    from pe_rlhf.training.plots import WARMUP_LABEL, _training_figure
+
+    with MetricsLogger(tmp_path) as logger:
+        for step in (50, 100, 150, 200):
+            logger.log(step, {"train/takeover_rate": 1.0 if step <= 100 else 0.3, "loss/qvalue": 1.0})
+    columns, rows = read_metrics_csv(tmp_path / "metrics.csv")
+    fig, axes = _training_figure(rows, columns, warmup_steps=100)
+    drawn = [ax for ax in axes.flat if ax.lines]  # (b) takeover rate and (f) losses
+    assert len(drawn) == 2
+    for ax in drawn:
+        (line,) = [ln for ln in ax.lines if ln.get_label() == WARMUP_LABEL]
+        assert list(line.get_xdata()) == [100.0, 100.0] and line.get_linestyle() == "--"
+    assert WARMUP_LABEL in [t.get_text() for t in drawn[0].get_legend().get_texts()]
+    plt.close(fig)
+    fig, axes = _training_figure(rows, columns)  # warm-up length unknown: no line
+    assert not any(ln.get_label() == WARMUP_LABEL for ax in axes.flat for ln in ax.lines)
+    plt.close(fig)
+    assert set(plot_learning_curves(tmp_path / "metrics.csv", tmp_path / "p", warmup_steps=100)) == {"training"}
+
+
 # -- video ---------------------------------------------------------------------------------------
 
 

@@ -53,7 +53,7 @@ def test_unknown_compare_policy_fails_before_training(tmp_path, capsys):
     assert "allowed" in capsys.readouterr().err and not (tmp_path / "metrics.csv").exists()
 
 
-def test_resume_continues_without_gap_or_repeat(tmp_path):
+def test_resume_continues_without_gap_or_repeat(tmp_path, capsys):
     recipe = _load_recipe()
     recipe.main(["profile=smoke", "collector.total_frames=200", "checkpoint.every_frames=100", "checkpoint.keep=2",
                  "--out", str(tmp_path)])
@@ -65,6 +65,10 @@ def test_resume_continues_without_gap_or_repeat(tmp_path):
     assert final["training"]["frames"] == 300
     # warm-up (100 frames) happened once: after resuming, the takeover bookkeeping counts online frames only
     assert final["training"]["online_frames"] == 200
+    capsys.readouterr()
+    again = recipe.main(["--resume", str(tmp_path), "collector.total_frames=300", "eval.video=false"])
+    assert "the run was already complete (300 of 300 frames); evaluating it again" in capsys.readouterr().out
+    assert again["training"]["frames"] == 300 and len(list(csv.DictReader(open(tmp_path / "metrics.csv")))) == 6
 
 
 def test_amateur_fatigue_is_logged_and_grows_with_the_steps_it_controls(tmp_path):

@@ -4,8 +4,8 @@
         --eval IDM-MOBIL=docs/results/idm-mobil_test.json --out runs/table1
 
 Parts: :mod:`~pe_rlhf.compare.rows` (which run folders / evaluation JSONs make each row, labels, order),
-:mod:`~pe_rlhf.compare.table` (the columns, read with :mod:`pe_rlhf.sweeps.summary`'s readers; mean ± std
-over seeds; ``table.md``, ``table.csv``), :mod:`~pe_rlhf.compare.plots` (``learning_curves.png``),
+:mod:`~pe_rlhf.compare.table` (the columns, read with :mod:`pe_rlhf.sweeps.summary`'s readers; mean
+[95% bootstrap CI] over seeds; ``table.md``, ``table.csv``), :mod:`~pe_rlhf.compare.plots` (``learning_curves.png``),
 :mod:`~pe_rlhf.compare.groups` (a figure per group of rows) and :mod:`~pe_rlhf.compare.cli`.
 """
 

@@ -39,7 +39,7 @@ def add_compare_parser(subparsers: argparse._SubParsersAction) -> argparse.Argum
         "compare", help="Table 1 and learning curves from finished run folders",
         description="Collect finished run folders (one per seed) and evaluation JSONs into the spec's Table 1: "
         "takeover data, total data, training time, training safety violations, test return, success, safety, "
-        "distance, velocity, overtakes, mean ± std over seeds. Writes OUT/table.md, OUT/table.csv and "
+        "distance, velocity, overtakes, mean [95% bootstrap CI] over seeds. Writes OUT/table.md, OUT/table.csv and "
         "OUT/learning_curves.png, and prints the table.")
     p.add_argument("--row", action="append", default=[], metavar="LABEL=DIR[,DIR...]",
                    help="a row of run folders, one per seed (a folder of run folders takes its finished "

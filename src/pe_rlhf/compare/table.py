@@ -1,5 +1,6 @@
 """The spec's Table 1 from collected rows: per seed the values (:data:`COLUMNS`, read as the sweep summary
-reads a cell: :mod:`pe_rlhf.sweeps.summary`), per row mean ± std over its seeds (population std),
+reads a cell: :mod:`pe_rlhf.sweeps.summary`), per row the mean over its seeds and its 95% bootstrap CI
+(:mod:`pe_rlhf.evaluation.statistics`),
 written as ``table.md`` and ``table.csv``.
 
 Columns, in the paper's order (spec section 7) with the training ones the issue adds:
@@ -16,7 +17,7 @@ Columns, in the paper's order (spec section 7) with the training ones the issue 
   ``eval.split``).
 
 An evaluation-only row (IDM-MOBIL) has the test columns only; a missing value is ``—`` in Markdown, NaN in
-the CSV. One seed shows its value without ``± std``.
+the CSV (which also has each column's population std). One seed shows its value without an interval.
 """
 
 from __future__ import annotations
@@ -26,16 +27,15 @@ from pathlib import Path
 from typing import Any
 
 from pe_rlhf.compare.plots import row_curve
+from pe_rlhf.evaluation.statistics import interval_text, seed_stats
 from pe_rlhf.compare.rows import TRAINED, Row
 from pe_rlhf.sweeps.summary import (
     METRICS,
     NAN,
     Metric,
-    _cell_text,
     _last_csv_row,
     _logged,
     _write_csv,
-    mean_std,
     metric_values,
 )
 
@@ -104,13 +104,13 @@ def seed_values(row: Row) -> list[dict[str, float]]:
 
 
 def aggregate_rows(rows: list[Row]) -> list[dict[str, Any]]:
-    """Per row: label, kind, seeds (how many sources), sources and ``{mean, std, n}`` per column."""
+    """Per row: label, kind, seeds (how many sources), sources and ``{mean, std, lo, hi, n}`` per column."""
     table = []
     for row in rows:
         seeds = seed_values(row)
         table.append({"label": row.label, "kind": row.kind, "seeds": len(row.sources),
                       "sources": [str(s.path) for s in row.sources],
-                      **{k: mean_std([s[k] for s in seeds]) for k in COLUMNS}})
+                      **{k: seed_stats([s[k] for s in seeds]) for k in COLUMNS}})
     return table
 
 
@@ -119,7 +119,7 @@ def markdown_table(table: list[dict[str, Any]]) -> str:
     header = ["method", "seeds", *(m.label for m in COLUMNS.values())]
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     for r in table:
-        cells = [r["label"], str(r["seeds"]), *(_cell_text(r[k], m.fmt) for k, m in COLUMNS.items())]
+        cells = [r["label"], str(r["seeds"]), *(interval_text(r[k], m.fmt) for k, m in COLUMNS.items())]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
@@ -156,13 +156,14 @@ def write_table(out: str | Path, rows: list[Row], title: str = "Table 1",
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     table = aggregate_rows(rows)
-    header = ["method", "kind", "seeds", *(f"{k}_{s}" for k in COLUMNS for s in ("mean", "std")), "sources"]
+    stats = ("mean", "std", "lo", "hi")
+    header = ["method", "kind", "seeds", *(f"{k}_{s}" for k in COLUMNS for s in stats), "sources"]
     _write_csv(out / TABLE_CSV, header,
-               [[r["label"], r["kind"], r["seeds"], *(r[k][s] for k in COLUMNS for s in ("mean", "std")),
+               [[r["label"], r["kind"], r["seeds"], *(r[k][s] for k in COLUMNS for s in stats),
                  ";".join(r["sources"])] for r in table])
     md = markdown_table(table)
     text = [f"# {title}", "",
-            ("Mean ± std over seeds (population std; one seed: its value). Test metrics from each run's "
+            ("Mean [95% bootstrap CI] over seeds (one seed: its value). Test metrics from each run's "
             "`final_eval.json` (evaluation-only rows: the `pe-rlhf evaluate` JSON); takeover data = mentor steps "
             "/ online steps (offline imitation: the demonstrations' share); total data = env steps + recorded "
             "demonstration steps; training time = the last `wall_time`; train safety viol. = training "

@@ -5,8 +5,8 @@
 "takeover_usage": [...], "seeds": N}}}``, a claim being the mentor's label (``professional``,
 ``adversarial``) and a method the sweep's name with ``-`` as ``_`` (``pe_rlhf``, ``haco``, ``idm_mobil``).
 An evaluation-only method (IDM-MOBIL: mentor ``-`` in the cells) joins every claim. ``test_safety`` is
-``1 - test safety violation rate``. The interval is scipy's bootstrap (BCa, 10,000
-resamples, seeded) of the mean over seeds; with one seed, or when every seed agrees, ``lo == hi == mean``.
+``1 - test safety violation rate``. The interval is :func:`pe_rlhf.evaluation.statistics.bootstrap_interval`
+(a 95% bootstrap CI of the mean over seeds); with one seed, or when every seed agrees, ``lo == hi == mean``.
 A metric a method does not have (IDM-MOBIL is not trained) is ``null``. Only finished cells count.
 """
 
@@ -17,33 +17,11 @@ import json
 import math
 from pathlib import Path
 
-import numpy as np
+from pe_rlhf.evaluation.statistics import bootstrap_interval  # re-exported: older callers import it here
 
 COLUMNS = {"success": ("success_rate", False), "test_safety": ("safety_violation", True),
            "train_violations": ("train_safety_violations", False), "takeover_usage": ("takeover_data_usage", False)}
-CONFIDENCE, RESAMPLES, SEED = 0.95, 10_000, 0
 NO_MENTOR = "-"  # the mentor column of an evaluation-only cell
-
-
-def bootstrap_interval(values: list[float]) -> list[float] | None:
-    """``[mean, lo, hi]`` of ``values`` (a 95% bootstrap CI of the mean), or None without finite values."""
-    from scipy.stats import bootstrap
-
-    x = np.asarray([v for v in values if math.isfinite(v)], dtype=float)
-    if not len(x):
-        return None
-    mean = float(x.mean())
-    if len(x) < 2 or np.ptp(x) == 0:
-        return [mean, mean, mean]
-    method = "BCa" if len(x) >= 3 else "percentile"
-    res = bootstrap((x,), np.mean, confidence_level=CONFIDENCE, n_resamples=RESAMPLES, method=method,
-                    random_state=np.random.default_rng(SEED))
-    lo, hi = float(res.confidence_interval.low), float(res.confidence_interval.high)
-    if not (math.isfinite(lo) and math.isfinite(hi)):  # BCa degenerates on tiny samples: fall back
-        res = bootstrap((x,), np.mean, confidence_level=CONFIDENCE, n_resamples=RESAMPLES, method="percentile",
-                        random_state=np.random.default_rng(SEED))
-        lo, hi = float(res.confidence_interval.low), float(res.confidence_interval.high)
-    return [mean, lo, hi]
 
 
 def read_cells(sources: str | Path | list[str | Path]) -> list[dict]:

@@ -1,9 +1,9 @@
 """A sweep folder's plots.
 
-- ``summary.png``: one panel per summary metric, mean ± std over seeds against the parameter axis (its
-  values when it is one numeric key, else its labels), one line per method x mentor; a row without a
-  parameter (IDM-MOBIL, HACO in an epsilon sweep) is a dashed level across the panel. Without a parameter
-  axis: bars per method x mentor.
+- ``summary.png``: one panel per summary metric, the mean over seeds with its 95% CI as error bars, against
+  the parameter axis (its values when it is one numeric key, else its labels), one line per method x mentor;
+  a row without a parameter (IDM-MOBIL, HACO in an epsilon sweep) is a dashed level across the panel.
+  Without a parameter axis: bars per method x mentor.
 - ``value_takeover_rate.png`` / ``takeover_rate.png``: the logged training curves (``metrics.csv``: the
   cumulative value-takeover rate, the per-batch takeover rate) against env steps, one panel per mentor, one
   line per method x parameter, mean over the seeds.
@@ -83,6 +83,13 @@ def _series_label(row: dict[str, Any]) -> str:
     return row["method"] if row["mentor"] == NONE else f"{row['method']} ({row['mentor']})"
 
 
+def _ci_yerr(stats: Sequence[dict]) -> list[list[float]]:
+    """Matplotlib's asymmetric ``yerr`` (below, above the mean) from ``{mean, lo, hi, n}`` stats; 0 without data."""
+    below = [s["mean"] - s["lo"] if s["n"] else 0.0 for s in stats]
+    above = [s["hi"] - s["mean"] if s["n"] else 0.0 for s in stats]
+    return [below, above]
+
+
 def _panel(ax, table: list[dict], metric: str, positions: dict[str, float], connect: bool = True) -> None:
     """One metric: a series per method (and mentor) against the parameter; ``connect=False`` (named variants,
     an axis without order) draws the points without joining lines."""
@@ -94,7 +101,7 @@ def _panel(ax, table: list[dict], metric: str, positions: dict[str, float], conn
         points = sorted(((positions[r["parameter"]], r[metric]) for r in rows
                          if r["parameter"] in positions and r[metric]["n"]), key=lambda point: point[0])
         if points:
-            ax.errorbar([p for p, _ in points], [s["mean"] for _, s in points], yerr=[s["std"] for _, s in points],
+            ax.errorbar([p for p, _ in points], [s["mean"] for _, s in points], yerr=_ci_yerr([s for _, s in points]),
                         marker="o", capsize=3, label=label, color=color, linestyle="-" if connect else "none")
         for r in rows:
             if r["parameter"] == NONE and r[metric]["n"]:
@@ -106,8 +113,8 @@ def _panel(ax, table: list[dict], metric: str, positions: dict[str, float], conn
 def _bars(ax, table: list[dict], metric: str) -> None:
     labels = [_series_label(r) for r in table]
     means = [r[metric]["mean"] for r in table]  # NaN (no data) draws no bar
-    stds = [r[metric]["std"] if r[metric]["n"] else 0.0 for r in table]
-    ax.bar(range(len(table)), means, yerr=stds, capsize=3, color=[f"C{i % 10}" for i in range(len(table))])
+    ax.bar(range(len(table)), means, yerr=_ci_yerr([r[metric] for r in table]), capsize=3,
+           color=[f"C{i % 10}" for i in range(len(table))])
     ax.set_xticks(range(len(table)), labels, rotation=30, ha="right", fontsize=7)
     ax.set_title(METRICS[metric].label, fontsize=9)
     ax.grid(alpha=0.3, axis="y")

@@ -1,10 +1,12 @@
-"""A sweep folder's tables: per-cell metrics (``cells.csv``) and mean ± std over seeds per
+"""A sweep folder's tables: per-cell metrics (``cells.csv``) and the mean with its 95% CI over seeds per
 method x mentor x parameter row (``summary.csv``, ``summary.md``).
 
 A cell's numbers come from its ``final_eval.json`` (test metrics on ``eval.split``, the training totals)
 and the last row of its ``metrics.csv`` (the cumulative training rates the recipe logs). Missing numbers
-(an evaluation-only cell has no training) are NaN in the CSVs and ``—`` in the Markdown. The std is the
-population std over the row's finished seeds (``numpy.std``), as ``benchmarks/train_seeds.py`` reports.
+(an evaluation-only cell has no training) are NaN in the CSVs and ``—`` in the Markdown. The Markdown shows
+``mean [lo, hi]``, the 95% bootstrap CI of the mean over the row's finished seeds
+(:mod:`pe_rlhf.evaluation.statistics`); the CSV has ``_mean``, ``_std`` (population std, as
+``benchmarks/train_seeds.py`` reports), ``_lo`` and ``_hi`` per metric.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from pe_rlhf.evaluation.statistics import interval_text, seed_stats
 from pe_rlhf.sweeps.cells import CELL_FILE, FINAL_EVAL, NONE, Cell, cell_dir
 
 NAN = float("nan")
@@ -119,8 +122,9 @@ def mean_std(values: Sequence[float]) -> dict[str, float]:
 
 
 def aggregate(rows: Sequence[dict[str, Any]], metrics: Sequence[str]) -> list[dict[str, Any]]:
-    """Rows grouped by (method, mentor, parameter) in first-seen order; per metric ``{mean, std, n}``
-    over the finished seeds; ``seeds`` finished / ``cells`` in the group."""
+    """Rows grouped by (method, mentor, parameter) in first-seen order; per metric ``{mean, std, lo, hi, n}``
+    (:func:`~pe_rlhf.evaluation.statistics.seed_stats`) over the finished seeds; ``seeds`` finished / ``cells``
+    in the group."""
     groups: dict[tuple, list[dict]] = {}
     for row in rows:
         groups.setdefault((row["method"], row["mentor"], row["parameter"]), []).append(row)
@@ -128,7 +132,7 @@ def aggregate(rows: Sequence[dict[str, Any]], metrics: Sequence[str]) -> list[di
     for (method, mentor, parameter), members in groups.items():
         done = [r for r in members if r["status"] == "finished"]
         table.append({"method": method, "mentor": mentor, "parameter": parameter, "seeds": len(done),
-                      "cells": len(members), **{m: mean_std([r[m] for r in done]) for m in metrics}})
+                      "cells": len(members), **{m: seed_stats([r[m] for r in done]) for m in metrics}})
     return table
 
 
@@ -139,12 +143,6 @@ def _write_csv(path: Path, header: list[str], rows: list[list[Any]]) -> None:
         writer.writerows(rows)
 
 
-def _cell_text(stat: dict[str, float], fmt: str) -> str:
-    if not stat["n"]:
-        return "—"
-    return format(stat["mean"], fmt) if stat["n"] == 1 else f"{stat['mean']:{fmt}} ± {stat['std']:{fmt}}"
-
-
 def markdown_table(table: list[dict[str, Any]], metrics: Sequence[str]) -> str:
     """The summary as a Markdown table; the mentor / parameter columns only when some row has one."""
     axes = [a for a in ("mentor", "parameter") if any(r[a] != NONE for r in table)]
@@ -152,7 +150,7 @@ def markdown_table(table: list[dict[str, Any]], metrics: Sequence[str]) -> str:
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     for r in table:
         cells = [r["method"], *(r[a] for a in axes), f"{r['seeds']}/{r['cells']}",
-                 *(_cell_text(r[m], METRICS[m].fmt) for m in metrics)]
+                 *(interval_text(r[m], METRICS[m].fmt) for m in metrics)]
         lines.append("| " + " | ".join(str(c) for c in cells) + " |")
     return "\n".join(lines) + "\n"
 
@@ -167,11 +165,12 @@ def write_summary(out: str | Path, cells: Sequence[Cell], metrics: Sequence[str]
     _write_csv(out / CELLS_CSV, keys, [[r[k] for k in keys] for r in rows])
     table = aggregate(rows, metrics)
     header = ["method", "mentor", "parameter", "seeds", "cells"]
-    _write_csv(out / SUMMARY_CSV, header + [f"{m}_{s}" for m in metrics for s in ("mean", "std")],
-               [[r[k] for k in header] + [r[m][s] for m in metrics for s in ("mean", "std")] for r in table])
+    stats = ("mean", "std", "lo", "hi")
+    _write_csv(out / SUMMARY_CSV, header + [f"{m}_{s}" for m in metrics for s in stats],
+               [[r[k] for k in header] + [r[m][s] for m in metrics for s in stats] for r in table])
     finished = sum(r["status"] == "finished" for r in rows)
     text = [f"# Sweep {title}", ""] + ([description, ""] if description else [])
-    text += [(f"{finished} of {len(rows)} cells finished; mean ± std over the finished seeds (population std); "
+    text += [(f"{finished} of {len(rows)} cells finished; mean [95% bootstrap CI] over the finished seeds; "
               "test metrics on the recipe's eval split, training numbers as logged at the end of training."), "",
              markdown_table(table, metrics)]
     paths = {"cells": out / CELLS_CSV, "summary_csv": out / SUMMARY_CSV, "summary_md": out / SUMMARY_MD}

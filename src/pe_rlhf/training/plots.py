@@ -57,6 +57,7 @@ TESTING_PANEL = (
 EVAL_PREFIX = "eval/"
 TRAINING_PNG = "training_curves.png"
 TESTING_PNG = "testing_curves.png"
+WARMUP_LABEL = "end of warm-up"
 
 
 def _series(rows: list[dict[str, float]], column: str) -> tuple[np.ndarray, np.ndarray]:
@@ -87,7 +88,19 @@ def _mark_missing(ax, name: str) -> None:
     ax.set_yticks([])
 
 
-def _training_figure(rows, columns):
+def _mark_warmup(axes, warmup_steps: float | None) -> None:
+    """A dashed vertical line where warm-up (the mentor drives every step) ends, on every drawn panel;
+    labelled in panel (a)'s legend."""
+    if not warmup_steps or warmup_steps <= 0:
+        return
+    drawn = [ax for ax in axes.flat if ax.lines]
+    for ax in drawn:
+        ax.axvline(float(warmup_steps), color="0.4", ls="--", lw=1, label=WARMUP_LABEL)
+    if drawn:
+        drawn[0].legend(fontsize=8)
+
+
+def _training_figure(rows, columns, warmup_steps: float | None = None):
     fig, axes = plt.subplots(2, 3, figsize=(15, 8), constrained_layout=True)
     for ax, (column, title) in zip(axes.flat, TRAINING_PANEL):
         ax.set_title(title, fontsize=10)
@@ -110,6 +123,7 @@ def _training_figure(rows, columns):
         ax.legend(fontsize=8)
     else:
         _mark_missing(ax, f"{LOSS_PREFIX}*")
+    _mark_warmup(axes, warmup_steps)
     return fig, axes
 
 
@@ -154,13 +168,15 @@ def plot_learning_curves(
     out_dir: str | os.PathLike,
     baseline: Mapping[str, Any] | str | os.PathLike | None = None,
     baseline_label: str | None = None,
+    warmup_steps: float | None = None,
 ) -> dict[str, Path]:
     """Write ``training_curves.png`` and ``testing_curves.png`` (2x3 panels each) to ``out_dir``.
 
     In: a metrics CSV (naming convention in the module docstring); an optional
     baseline drawn as dashed horizontal lines on the testing panel: an evaluation
     summary dict / JSON path (``{metric: {"mean", "std"}}``, e.g. IDM-MOBIL's) or a
-    flat ``{"eval/<metric>_mean": x}`` dict; its label (default: the JSON's ``policy``).
+    flat ``{"eval/<metric>_mean": x}`` dict; its label (default: the JSON's ``policy``);
+    ``warmup_steps`` (``collector.warmup_steps``), marked on the training panel as a dashed line.
     Out: ``{"training": path, "testing": path}``; a panel none of whose columns
     were logged is not written and not returned.
     """
@@ -173,7 +189,7 @@ def plot_learning_curves(
     present = {c for r in rows for c in r}
     written: dict[str, Path] = {}
     if any(c in present for c, _ in TRAINING_PANEL) or any(c.startswith(LOSS_PREFIX) for c in present):
-        fig, axes = _training_figure(rows, columns)
+        fig, axes = _training_figure(rows, columns, warmup_steps)
         written["training"] = _save(fig, axes, out_dir / TRAINING_PNG, "Training")
     if any(f"{EVAL_PREFIX}{m}_mean" in present for m, _ in TESTING_PANEL):
         fig, axes = _testing_figure(rows, baseline, str(label))

@@ -76,7 +76,7 @@ def main(argv: list[str] | None = None, *, config_path: str | Path | None = None
                        config=to_container(cfg), resume=bool(args.resume)) as logger:
         final = train(cfg, out, logger, checkpoint_dir=out / "checkpoints", resume=bool(args.resume))
     write_json(out / "final_eval.json", final)
-    plot_learning_curves(out / "metrics.csv", out)
+    plot_learning_curves(out / "metrics.csv", out, warmup_steps=int(cfg.collector.warmup_steps))
     report_final(out, method, final, args.compare, cfg)
     return final
 

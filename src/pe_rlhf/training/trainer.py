@@ -192,6 +192,10 @@ def _train(cfg, out_dir, logger, checkpoint_dir, resume: bool, update_threads: i
 
     run = _Run(cfg, logger, checkpoint_dir, update_threads)
     journaled, pending = run.resume() if resume else ([], None)
+    if resume and run.done:  # otherwise the re-evaluation below looks like training that did nothing
+        total = int(cfg.collector.total_frames)
+        print(f"{out_dir}: the run was already complete ({int(run.counters.frames)} of {total} frames); "
+              "evaluating it again (final_eval.json, actor.pt and the plots are rewritten)", flush=True)
     try:
         run.start()
         for entry in journaled:  # the killed run's batches since its checkpoint, as it processed them
