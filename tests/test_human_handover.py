@@ -17,17 +17,10 @@ import torch  # noqa: E402
 
 from pe_rlhf.mentors.human import HumanMentor  # noqa: E402
 from pe_rlhf.mentors.human_input import InputState  # noqa: E402
+from _pygame_events import axis, key  # noqa: E402
 
 STEER_RATE = 0.1  # InputState's default key increment per poll
 AGENT = np.array([0.4, 0.3], dtype=np.float32)  # the agent steers right (a curve), light throttle
-
-
-def key(k, down=True):
-    pygame.event.post(pygame.event.Event(pygame.KEYDOWN if down else pygame.KEYUP, key=k))
-
-
-def axis(a, v, iid=0):
-    pygame.event.post(pygame.event.Event(pygame.JOYAXISMOTION, instance_id=iid, axis=a, value=v))
 
 
 @pytest.fixture

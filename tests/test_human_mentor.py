@@ -18,14 +18,7 @@ from pe_rlhf.envs import make_gym_env  # noqa: E402
 from pe_rlhf.mentors.base import Mentor  # noqa: E402
 from pe_rlhf.mentors.human import PANEL_HEIGHT, SOURCE_COLORS, HumanMentor  # noqa: E402
 from pe_rlhf.mentors.human_input import InputState, JoystickMapping  # noqa: E402
-
-
-def key(k, down=True):
-    pygame.event.post(pygame.event.Event(pygame.KEYDOWN if down else pygame.KEYUP, key=k))
-
-
-def axis(a, v, iid=0):
-    pygame.event.post(pygame.event.Event(pygame.JOYAXISMOTION, instance_id=iid, axis=a, value=v))
+from _pygame_events import axis, key  # noqa: E402
 
 
 @pytest.fixture
