@@ -28,8 +28,8 @@ import torch
 from highway_env import utils
 
 from pe_rlhf.envs.action import MAX_BRAKING, MAX_STEERING, action_to_controls
+from pe_rlhf.envs.driving_env import ROAD_EDGE_MARGIN  # the env's own off-road test, not a copy of it
 
-ROAD_EDGE_MARGIN = 1.0  # [m] as the env: the ego centre may pass the edge line by this much
 NEAR = 60.0  # [m] road users farther than this cannot be reached within a forecast
 RECOVERY_STEERING_GAIN = 1.5  # [rad of wheel angle per rad of heading error] while recovering
 
@@ -102,12 +102,12 @@ def time_to_failure(env, action, config: SafetyForecastConfig | None = None) -> 
         speed = min(max(speed + accel * config.dt, 0.0), float(getattr(ego, "MAX_SPEED", 40.0)))
         if not network.is_on_road(position, ROAD_EDGE_MARGIN):
             return t
-        ego_box = (position, ego.LENGTH, ego.WIDTH, heading)
+        ego_corners = utils.rect_corners(position, ego.LENGTH, ego.WIDTH, heading)
         for pos, vel, head, length, width in others:
             other = pos + vel * t
             if np.linalg.norm(other - position) > (length + ego.LENGTH) / 2 + (width + ego.WIDTH) / 2:
                 continue
-            if utils.are_polygons_intersecting(utils.rect_corners(*ego_box[:3], ego_box[3]),
+            if utils.are_polygons_intersecting(ego_corners,
                                                utils.rect_corners(other, length, width, head),
                                                np.zeros(2), np.zeros(2))[0]:
                 return t
