@@ -12,6 +12,9 @@ training (no copy of their logic). Rows per mentor:
 - ``as-is``: the mentor's takeovers executed as they come (HACO's executed actions);
 - ``hybrid eps=E margin=M``: PE-RLHF's executed actions with ``selector.value`` (``--value``).
 
+``--warmup``: instead, the warm-up's executed actions: the mentor drives every step (``warmup``, the paper's
+warm-up) or drives under the selector's judgement (``warmup+selection eps=E``: ``selector.warmup_selection``).
+
 Each row: success, safety violation (episodes with a crash or leaving the road), timeouts, takeover share of
 steps and the share of takeover steps executing the mentor. Calibrate on ``--split train``; the test split is
 for the final check. Importable: :func:`drive` and :func:`measure` run nothing at import.
@@ -52,15 +55,18 @@ class RegisteredAgent:
 
 def drive(mentor: str | None, scenes: list[int], split: str = "train", selector: HybridActionSelector | None = None,
           mentor_seed: int = 0, world: DrivingConfig | None = None, progress: str | None = None,
-          driver: str = "idm-mobil", mentor_kwargs: dict | None = None) -> dict:
+          driver: str = "idm-mobil", mentor_kwargs: dict | None = None, warmup: bool = False) -> dict:
     """Episodes of ``driver`` (an evaluation policy name; IDM-MOBIL by default) under ``mentor`` (None: alone),
-    the selector picking when given; a dict of rates."""
+    the selector picking when given; a dict of rates. ``warmup``: the mentor drives every step, as in a
+    run's warm-up (judged by the selector when given: ``warmup_selection``)."""
     world = world or DrivingConfig(split=split, lane_features=True)
     env = make_env(world)
     transform = None
     if mentor is not None:
         physics = IDMMobilPolicy(PhysicsConfig()) if selector is not None else None
-        transform = InterventionTransform(make_mentor(mentor, mentor_seed, **(mentor_kwargs or {})), selector, physics)
+        transform = InterventionTransform(make_mentor(mentor, mentor_seed, **(mentor_kwargs or {})), selector, physics,
+                                          warmup_steps=10**12 if warmup else 0,
+                                          warmup_selection=warmup and selector is not None)
         env.append_transform(transform)
     agent = RegisteredAgent(env, driver)
     rows = []
@@ -116,6 +122,25 @@ def measure(mentors: list[str], scenes: list[int], split: str, value: str, epsil
     return results
 
 
+def warmup_rows(mentors: list[str], scenes: list[int], split: str, value: str, epsilons: list[float]) -> list[dict]:
+    """The warm-up's executed actions per mentor: the mentor alone, then judged by ``value`` at each epsilon."""
+    world = DrivingConfig(split=split, lane_features=True)
+    kind, path = parse_value_source(value)
+    if kind == "warmup":
+        raise SystemExit("--warmup judges the warm-up: a value fitted on it cannot; use forecast or expert")
+    ensemble = SafetyForecastValue() if kind == "forecast" else load_value_expert(path, world_obs_dim(world))
+    results = []
+    for mentor in mentors:
+        results.append({"mentor": mentor, "row": "warmup", **drive(mentor, scenes, split, world=world, warmup=True,
+                                                                   progress=f"{mentor} warm-up")})
+        for eps in epsilons:
+            label = f"warmup+selection eps={eps:g}"
+            results.append({"mentor": mentor, "row": label, "epsilon_select": eps,
+                            **drive(mentor, scenes, split, HybridActionSelector(ensemble, eps), world=world,
+                                    warmup=True, progress=f"{mentor} {label}")})
+    return results
+
+
 def takeover_rates(mentors: list[str], drivers: list[str], scenes: list[int], split: str = "train") -> list[dict]:
     """Each mentor's takeover share of steps watching each driver, its takeovers executed as they come (HACO):
     a competent driver should rarely be taken over, a bad one nearly always."""
@@ -163,12 +188,16 @@ def main(argv=None) -> list[dict]:
     parser.add_argument("--takeover-rates", nargs="*", metavar="DRIVER", default=None,
                         help="instead: each mentor's takeover share watching these drivers (e.g. idm-mobil-oracle "
                              "idm-mobil idm-mobil-blind random)")
+    parser.add_argument("--warmup", action="store_true", help="instead: the warm-up's executed actions, the mentor "
+                        "alone and under the selector (selector.warmup_selection)")
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     t = time.time()
     scenes = parse_scenes(args.scenes, args.split)
-    if args.takeover_rates is not None:
+    if args.warmup:
+        results = warmup_rows(args.mentors, scenes, args.split, args.value, args.epsilons)
+    elif args.takeover_rates is not None:
         results = takeover_rates(args.mentors, args.takeover_rates or ["idm-mobil-oracle", "idm-mobil",
                                                                        "idm-mobil-blind", "random"], scenes, args.split)
     else:

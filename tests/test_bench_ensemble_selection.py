@@ -27,3 +27,11 @@ def test_extreme_thresholds_execute_the_mentor_or_physics(bench, tmp_path):
 def test_takeover_rates_watch_each_driver(bench):
     (row,) = bench.takeover_rates(["professional"], ["random"], [0])
     assert row["driver"] == "random" and 0.5 < row["takeover_share"] <= 1.0 and row["mentor_share"] == 1.0
+
+
+def test_warmup_rows_the_mentor_drives_every_step_and_an_extreme_threshold_keeps_it(bench):
+    rows = bench.warmup_rows(["professional"], [0, 1], "train", "forecast", [-1e6])
+    alone, judged = rows
+    assert alone["row"] == "warmup" and alone["takeover_share"] == 1.0 and alone["mentor_share"] == 1.0
+    # a threshold no forecast can beat executes the mentor at every step: the paper's warm-up, step for step
+    assert judged["mentor_share"] == 1.0 and judged["per_episode"] == alone["per_episode"]

@@ -3,7 +3,7 @@
 The round trip trains a small ``PERLHFLoss`` (3 Adam optimizers, SoftUpdate targets) from a
 ``TensorDictReplayBuffer``, saves, keeps training, then loads into freshly built objects and checks
 that the continuation is bit-identical. Failures are injected by monkeypatching the module's single
-file-writing helper (``_write_bytes``) or the buffer's ``dumps``.
+file-writing helper (``pe_rlhf.durable.write_bytes``) or the buffer's ``dumps``.
 """
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ from torchrl.objectives import SoftUpdate
 from _compare import assert_same
 from pe_rlhf.modules.networks import make_actor, make_qvalue
 from pe_rlhf.objectives.perlhf import PERLHFLoss, make_transitions
+from pe_rlhf import durable
 from pe_rlhf.training import checkpoint as ck
 from pe_rlhf.training.checkpoint import (CheckpointError, capture_rng, find_checkpoint, list_checkpoints,
                                          load_checkpoint, restore_rng, save_checkpoint)
@@ -349,7 +350,7 @@ def test_disk_full_keeps_previous_checkpoint(tmp_path, trained, monkeypatch, fai
     at_save = snapshot(trained)
     trained.update()
 
-    real_write = ck._write_bytes
+    real_write = durable.write_bytes
 
     def write(path: Path, data: bytes) -> None:
         if path.name == failing or (failing == "latest" and path.name.startswith(".latest.tmp")):
@@ -362,7 +363,7 @@ def test_disk_full_keeps_previous_checkpoint(tmp_path, trained, monkeypatch, fai
         (Path(path) / "partial.memmap").write_bytes(b"\0" * 10)
         raise OSError(errno.ENOSPC, "No space left on device")
 
-    monkeypatch.setattr(ck, "_write_bytes", write)
+    monkeypatch.setattr(durable, "write_bytes", write)
     if failing == "buffer":
         monkeypatch.setattr(trained.buffer, "dumps", dumps)
     with pytest.raises(OSError, match=r"could not write checkpoint step 2 .*No space left.*ckpt_000000001 is intact") \
@@ -394,14 +395,14 @@ def test_refusal_message_is_short_and_names_the_file(tmp_path, trained):
 
 def test_failed_resave_of_a_step_keeps_the_old_one(tmp_path, trained, monkeypatch):
     trained.save(tmp_path, step=5, state={"v": 1})
-    real_write = ck._write_bytes
+    real_write = durable.write_bytes
 
     def write(path: Path, data: bytes) -> None:
         if path.name.startswith(".latest.tmp"):
             raise OSError(errno.ENOSPC, "No space left on device", str(path))
         real_write(path, data)
 
-    monkeypatch.setattr(ck, "_write_bytes", write)
+    monkeypatch.setattr(durable, "write_bytes", write)
     with pytest.raises(OSError, match="ckpt_000000005 is intact"):
         trained.save(tmp_path, step=5, state={"v": 2})
     monkeypatch.undo()

@@ -18,6 +18,7 @@ from pe_rlhf.evaluation import (
     RandomPolicy,
     TorchRLPolicyAdapter,
     evaluate,
+    fit_label,
     make_policy,
     print_summary,
     register_policy,
@@ -139,6 +140,28 @@ def test_report_renders_and_json_is_atomic(idm_summary, tmp_path):
     path = write_json(tmp_path / "nested" / "dir" / "s.json", idm_summary)
     assert json.loads(path.read_text()) == json.loads(json.dumps(idm_summary))
     assert [p.name for p in path.parent.iterdir()] == ["s.json"]  # no temp file left behind
+
+
+def test_labels_fit_on_one_line():
+    """A run folder's label (``agent:<path>``) keeps the run's name and never wraps over rows."""
+    assert fit_label("agent:/work/runs/sweeps/claims/pe-rlhf__professional__s0") == "agent:pe-rlhf__professional__s0"
+    assert fit_label("agent:runs/hc/checkpoints/ckpt_000030000") == "agent:hc/checkpoints/ckpt_000030000"
+    assert fit_label("agent:/work/runs/sweeps/claims/pe-rlhf__professional__s0", 28) == "pe-rlhf__professional__s0"
+    assert fit_label("agent:/r/" + "x" * 50, 20) == "…" + "x" * 19
+    assert fit_label("idm-mobil") == "idm-mobil" and fit_label("C:/runs/a") == "a"
+
+
+@pytest.mark.parametrize("width", [80, 120])
+def test_report_keeps_a_long_run_label_on_one_row(idm_summary, width):
+    label = "agent:/work/runs/sweeps/claims_forecast/pe-rlhf__professional__s0"
+    console = Console(record=True, width=width)
+    print_summary([(label, idm_summary), ("idm-mobil", idm_summary)], console=console)
+    lines = console.export_text().splitlines()
+    assert max(len(line) for line in lines) <= width
+    shown = fit_label(label, 10 if width == 80 else 28)
+    assert sum(shown in line for line in lines) == 2  # one row in each table, nowhere folded
+    if width == 120:
+        assert shown == "pe-rlhf__professional__s0" and "overtakes" in "".join(lines)
 
 
 def test_cli_evaluate_writes_json(tmp_path, capsys):

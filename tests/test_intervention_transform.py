@@ -193,6 +193,46 @@ def test_warmup_mentor_drives_every_step_then_normal():
     assert (td["next", "behavior_action"][20:] == proposal).all()
 
 
+class _SteerOffMentor(Mentor):
+    """A hostile mentor: in control it steers hard left at full throttle, off the road within seconds."""
+
+    name = "steer-off"
+
+    def act(self, env) -> np.ndarray:
+        return np.array([-1.0, 1.0], dtype=np.float32)
+
+    def decide(self, env, agent_action: np.ndarray) -> MentorDecision:
+        return MentorDecision(False, self.act(env))
+
+
+@pytest.mark.parametrize("warmup_selection", [False, True])
+def test_warmup_selection_lets_the_forecast_overrule_a_hostile_warmup(warmup_selection):
+    """The paper's warm-up bypasses the selector: a hostile mentor drives off the road. With
+    ``warmup_selection`` the physics forecast judges each warm-up step, executes physics where the
+    mentor's action fails sooner, and the car stays on the road."""
+    from pe_rlhf.physics.safety import SafetyForecastValue
+
+    selector = HybridActionSelector(SafetyForecastValue(), epsilon_select=-0.5)
+    env = _env(_SteerOffMentor(), selector=selector, physics=IDMMobilPolicy(), warmup_steps=60,
+               warmup_selection=warmup_selection)
+    td = _rollout(env, _fixed_agent(torch.tensor([0.0, 0.3])), 60, break_when_any_done=True)
+    assert _flags(td, "intervention").all()
+    off_road = bool(_flags(td, "out_of_road").any())
+    physics_ran = ~_flags(td, "mentor_selected")
+    if warmup_selection:
+        assert not off_road and td.shape[0] == 60
+        assert physics_ran.any() and (td["next", "physics_action"].abs().sum(-1) > 0).all()
+        np.testing.assert_array_equal(td["next", "behavior_action"][physics_ran].numpy(),
+                                      td["next", "physics_action"][physics_ran].numpy())
+    else:
+        assert off_road and not physics_ran.any() and (td["next", "physics_action"] == 0).all()
+
+
+def test_warmup_selection_needs_a_selector_and_the_mentor_driving():
+    with pytest.raises(ValueError, match="warmup_selection needs a selector"):
+        _env(warmup_steps=5, warmup_selection=True)
+
+
 class _RecordingDriver:
     """A warm-up driver: brakes gently straight ahead, and records the observations it was given."""
 

@@ -90,11 +90,11 @@ def test_wandb_and_tensorboard_receive_scalars_and_the_test_episode_video(tmp_pa
     from torchrl.record.loggers import TensorboardLogger, WandbLogger
 
     from pe_rlhf.evaluation import make_policy
-    from pe_rlhf.training.video import record_episode_gif
+    from pe_rlhf.training.video import CAPTION_HEIGHT, record_episode_gif
 
     video = record_episode_gif(make_policy("idm-mobil", 0), None, 1000, tmp_path / "episode.gif", max_steps=5,
                                keep_video=True)["video"]
-    assert video.dtype == np.uint8 and video.shape == (6, 225, 400, 3)  # the GIF's frames (800x450 at 0.5)
+    assert video.dtype == np.uint8 and video.shape == (6, 338 + CAPTION_HEIGHT, 600, 3)  # the GIF's captioned frames
     with MetricsLogger(tmp_path, wandb=True, tensorboard=True, config={"lr": 1e-4}) as logger:
         logger.log(1, {"train/takeover_rate": 0.5, "loss/qvalue": 2.0})
         logger.log(2, {"train/takeover_rate": 0.25})
@@ -106,7 +106,7 @@ def test_wandb_and_tensorboard_receive_scalars_and_the_test_episode_video(tmp_pa
     events = _tensorboard_events(tmp_path / "tensorboard")
     assert [(e.step, e.value) for e in events.Scalars("train/takeover_rate")] == [(1, 0.5), (2, 0.25)]
     assert [e.step for e in events.Scalars("loss/qvalue")] == [1]
-    assert [(e.step, e.width, e.height) for e in events.Images("eval/test_episode")] == [(2, 400, 225)]
+    assert [(e.step, e.width, e.height) for e in events.Images("eval/test_episode")] == [(2, 600, 338 + CAPTION_HEIGHT)]
     (run,) = (tmp_path / "wandb").glob("offline-run-*")
     assert list(run.glob("run-*.wandb")) and list(run.glob("files/media/videos/eval/test_episode_2_*.mp4"))
     assert len(_rows(tmp_path / "metrics.csv")) == 3

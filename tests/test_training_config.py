@@ -9,7 +9,7 @@ import pytest
 from omegaconf import OmegaConf
 
 from pe_rlhf.envs.config import DrivingConfig
-from pe_rlhf.training.builders import epsilon_select
+from pe_rlhf.training.builders import epsilon_select, warmup_selection
 from pe_rlhf.training.config import (
     DEFAULTS,
     OPEN_GROUPS,
@@ -182,6 +182,7 @@ INVALID = [
     ("env.lanes", "7"),
     ("env.trafic_density", "0.5"),
     ("mentor.name", "expert"),
+    ("selector.warmup_selection", "sometimes"),
     ("mentor.seed", "1.5"),
     ("mentor.kwargs.skill", "3"),
     ("physics.use_idm", "maybe"),
@@ -333,3 +334,25 @@ def test_physics_config_follows_the_switches():
 def test_epsilon_select_null_takes_the_value_sources_own(overrides, expected):
     cfg = load_config(overrides=overrides)
     assert epsilon_select(cfg) == expected
+
+
+@pytest.mark.parametrize("overrides, expected", [
+    ([], True),  # the forecast needs no fit: it judges the warm-up too
+    (["selector.value=expert"], True),
+    (["selector.value=warmup"], False),  # fitted on the warm-up: it cannot judge it
+    (["collector.warmup_policy=runs/x"], False),  # a trained policy drives the warm-up, not the mentor
+    (["selector.warmup_selection=false"], False),
+    (["selector.enabled=false", "physics.enabled=false"], False),  # HACO
+])
+def test_warmup_selection_auto(overrides, expected):
+    assert warmup_selection(load_config(overrides=overrides)) is expected
+
+
+@pytest.mark.parametrize("overrides, message", [
+    (["selector.value=warmup"], "not fitted on the warm-up"),
+    (["collector.warmup_policy=runs/x"], "collector.warmup_policy drives it"),
+])
+def test_warmup_selection_true_where_it_cannot_work_names_why(overrides, message):
+    with pytest.raises(ConfigError, match=message) as info:
+        load_config(overrides=[*overrides, "selector.warmup_selection=true"])
+    assert info.value.field == "selector.warmup_selection"

@@ -13,6 +13,7 @@ import pytest
 
 from pe_rlhf.training.metrics_logger import MetricsLogger, flatten_eval_summary, read_metrics_csv
 from pe_rlhf.training.plots import TESTING_PANEL, plot_learning_curves
+from pe_rlhf.training.video import CAPTION_HEIGHT
 
 
 def _read(path):
@@ -227,6 +228,45 @@ def test_episode_gif_idm_mobil(tmp_path):
     assert path.exists() and info["path"] == str(path)
     assert 1 <= info["steps"] <= 20 and info["frames"] == info["steps"] + 1
     assert info["scene_seed"] == 1000 and "success" in info
+    assert info["drivers"] == {"agent": info["steps"]}
     with Image.open(path) as gif:
         assert gif.n_frames > 1
-        assert gif.size == (400, 225)  # the 800x450 render at scale 0.5
+        assert gif.size == (600, 338 + CAPTION_HEIGHT)  # the 800x450 render at scale 0.75, captioned below
+
+
+def test_episode_gif_captions_who_drives_in_a_takeover_run(tmp_path):
+    """Filmed through the InterventionWrapper with a random agent, the professional takes over:
+    the caption names the mentor (or physics) on those frames, in its colour, and the agent on the rest."""
+    from PIL import Image
+
+    from pe_rlhf.evaluation import make_policy
+    from pe_rlhf.mentors import make_mentor
+    from pe_rlhf.physics import IDMMobilPolicy
+    from pe_rlhf.physics.safety import SafetyForecastValue
+    from pe_rlhf.training.video import DRIVER_COLOURS, driver_of, label_frame, record_episode_gif
+    from pe_rlhf.transforms import HybridActionSelector
+    from pe_rlhf.wrappers import InterventionWrapper
+
+    assert driver_of({}) == "agent" and driver_of({"is_intervention": True}) == "mentor"
+    assert driver_of({"is_intervention": True, "physics_action": 0, "mentor_selected": False}) == "physics"
+    frame = label_frame(np.zeros((40, 200, 3), np.uint8), "step   3    54 km/h", "mentor")
+    assert frame.shape == (40 + CAPTION_HEIGHT, 200, 3) and not frame[:40].any()
+    band = frame[40:].reshape(-1, 3)
+    assert (band == DRIVER_COLOURS["mentor"]).all(axis=1).any()  # the driver's colour swatch
+    assert (band == DRIVER_COLOURS["mentor"]).all(axis=1).mean() < 0.2
+
+    path = tmp_path / "takeover.gif"
+    info = record_episode_gif(make_policy("random", 0), None, 1000, path, max_steps=60,
+                              wrap=lambda env: InterventionWrapper(
+                                  env, make_mentor("professional", seed=0), physics=IDMMobilPolicy(),
+                                  selector=HybridActionSelector(SafetyForecastValue(), epsilon_select=-0.5)),
+                              keep_video=True)
+    drivers = info["drivers"]
+    assert sum(drivers.values()) == info["steps"] and drivers.get("mentor", 0) > 0 and drivers.get("agent", 0) > 0
+    video = info["video"]
+    swatch = {d: (video[:, -CAPTION_HEIGHT:].reshape(len(video), -1, 3) == c).all(axis=2).any(axis=1)
+              for d, c in DRIVER_COLOURS.items()}
+    for driver in DRIVER_COLOURS:  # each frame's swatch names its step's driver (the reset frame: agent)
+        assert swatch[driver].sum() == drivers.get(driver, 0) + (driver == "agent")
+    with Image.open(path) as gif:
+        assert gif.size == (600, 338 + CAPTION_HEIGHT)

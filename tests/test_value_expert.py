@@ -9,12 +9,13 @@ import torch
 from tensordict import TensorDict
 
 from pe_rlhf.baselines import main as baseline_main
+from pe_rlhf.durable import sha256_file
 from pe_rlhf.modules import make_actor, make_qvalue, q_ensemble_from_critics
 from pe_rlhf.objectives import PERLHFLoss
 from pe_rlhf.training import builders
 from pe_rlhf.training.config import ConfigError, load_config
 from pe_rlhf.training.value_expert import (critics_of_run, export_value_expert, load_value_expert,
-                                           packaged_expert_path, parse_value_source, sha256_of)
+                                           packaged_expert_path, parse_value_source)
 
 pytestmark = pytest.mark.filterwarnings("ignore:No target network updater")
 
@@ -62,7 +63,7 @@ def test_a_sac_run_folder_is_an_expert_and_exports_with_provenance(sac_run, tmp_
     assert expert.num_members == 4 and expert.obs_dim == 270  # twin Q and its target twin, lane features
     out = tmp_path / "expert.pt"
     record = export_value_expert(sac_run, out, {"command": "python recipes/sac_rs/train.py profile=smoke"})
-    assert record["sha256"] == sha256_of(out) and record["members"] == 4
+    assert record["sha256"] == sha256_file(out) and record["members"] == 4
     assert json.loads(out.with_suffix(".json").read_text())["run_config"]["method"] == "sac_rs"
     obs, act = torch.rand(8, 270) * 2 - 1, torch.rand(8, 2) * 2 - 1
     torch.testing.assert_close(load_value_expert(out, 270).values(obs, act), expert.values(obs, act))
@@ -105,7 +106,7 @@ def test_the_recipe_builds_a_frozen_expert_and_never_fits_it(sac_run):
 def test_the_packaged_expert_matches_its_provenance():
     path = packaged_expert_path()
     record = json.loads(path.with_suffix(".json").read_text())
-    assert record["sha256"] == sha256_of(path)
+    assert record["sha256"] == sha256_file(path)
     expert = load_value_expert(None, obs_dim=270)
     assert expert.num_members == record["members"] == 4
     for key in ("command", "seed", "env_steps", "test_success"):

@@ -45,7 +45,7 @@ class InterventionWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
     """A mentor (and, in PE-RLHF, physics + selector) takes over the agent's action in a gymnasium env.
 
     The same arguments and decisions as :class:`~pe_rlhf.transforms.InterventionTransform` (``mentor``,
-    ``physics``, ``selector``, ``warmup_steps``, ``warmup_driver``); the mentor and physics get the
+    ``physics``, ``selector``, ``warmup_steps``, ``warmup_driver``, ``warmup_selection``); the mentor and physics get the
     wrapped env's ``unwrapped`` (e.g. ``DrivingEnv``, ``PendulumEnv``). Actions are 1-D; the selector and
     a warm-up driver see the last observation returned. ``info`` keys: the module docstring.
 
@@ -54,12 +54,13 @@ class InterventionWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
     """
 
     def __init__(self, env: gym.Env, mentor, physics=None, selector=None, warmup_steps: int = 0,
-                 warmup_driver=None):
+                 warmup_driver=None, warmup_selection: bool = False):
         gym.utils.RecordConstructorArgs.__init__(self, mentor=mentor, physics=physics, selector=selector,
-                                                 warmup_steps=warmup_steps, warmup_driver=warmup_driver)
+                                                 warmup_steps=warmup_steps, warmup_driver=warmup_driver,
+                                                 warmup_selection=warmup_selection)
         gym.Wrapper.__init__(self, env)
         self.core = TakeoverCore(mentor, selector, physics, warmup_steps, warmup_driver,
-                                 owner="InterventionWrapper")
+                                 owner="InterventionWrapper", warmup_selection=warmup_selection)
         self._observation = None
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):

@@ -21,6 +21,7 @@ from _runs import ROOT, train
 from tensordict import TensorDict
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 
+from pe_rlhf import durable
 from pe_rlhf.training import checkpoint as ck
 from pe_rlhf.training.checkpoint import CheckpointError, find_checkpoint, list_checkpoints, load_checkpoint
 from pe_rlhf.training.journal import BatchJournal
@@ -73,7 +74,7 @@ def test_disk_full_during_a_run_keeps_the_last_checkpoint_and_the_journal_recove
     """The disk fills up as the checkpoint at frame 100 is written: the run stops with a clear error,
     the checkpoint at 50 stays loadable, and once there is room ``--resume`` gets frames 51-100
     back from the journal written before the disk filled."""
-    real_write = ck._write_bytes
+    real_write = durable.write_bytes
 
     def write(path: Path, data: bytes) -> None:
         if "ckpt_000000100" in str(path):
@@ -81,7 +82,7 @@ def test_disk_full_during_a_run_keeps_the_last_checkpoint_and_the_journal_recove
             raise OSError(errno.ENOSPC, "No space left on device", str(path))
         real_write(path, data)
 
-    monkeypatch.setattr(ck, "_write_bytes", write)
+    monkeypatch.setattr(durable, "write_bytes", write)
     out = tmp_path / "run"
     with pytest.raises(OSError, match=r"could not write checkpoint step 100 .*No space left on device.*"
                                       r"ckpt_000000050 is intact") as info:
@@ -101,7 +102,7 @@ def test_journal_write_on_a_full_disk_is_a_clear_error(tmp_path, monkeypatch):
     def full(path, data):
         raise OSError(errno.ENOSPC, "No space left on device", str(path))
 
-    monkeypatch.setattr(ck, "_write_bytes", full)
+    monkeypatch.setattr(durable, "write_bytes", full)
     with pytest.raises(OSError, match=r"could not journal frames 10-14 to .*batch_000000014.*No space left"):
         journal.write(TensorDict({"x": torch.zeros(4)}, batch_size=[4]), start=10)
     assert not list(tmp_path.iterdir())  # no partial file left behind

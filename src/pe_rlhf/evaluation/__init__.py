@@ -14,7 +14,7 @@ from pe_rlhf.evaluation.policies import (
     make_policy,
     register_policy,
 )
-from pe_rlhf.evaluation.report import print_summary, summary_tables, write_json
+from pe_rlhf.evaluation.report import fit_label, print_summary, summary_tables, write_json
 
 __all__ = [
     "POLICY_FACTORIES",
@@ -25,6 +25,7 @@ __all__ = [
     "RandomPolicy",
     "TorchRLPolicyAdapter",
     "evaluate",
+    "fit_label",
     "make_policy",
     "print_summary",
     "register_policy",

@@ -24,7 +24,6 @@ from __future__ import annotations
 import hashlib
 import io
 import json
-import os
 import re
 import time
 from pathlib import Path
@@ -39,6 +38,7 @@ from tqdm.auto import tqdm
 from pe_rlhf import __version__
 from pe_rlhf.envs import DrivingConfig, make_gym_env, scene_seeds
 from pe_rlhf.envs.torchrl_env import BOOL_INFO, FLOAT_INFO, INT_INFO
+from pe_rlhf.durable import replace_bytes, write_bytes
 from pe_rlhf.filelock import FileLock
 
 FORMAT_VERSION = 1
@@ -50,27 +50,6 @@ MANIFEST_FIELDS = ("episode", "file", "steps", "scene_seed", "bytes", "sha256")
 CHUNK_NAME = re.compile(r"^\.?\d{6}\.pt(\.tmp)?$")  # episodes/NNNNNN.pt and its temp file
 DTYPES = {**dict.fromkeys(("observation", "next_observation", "action", "reward", *FLOAT_INFO), torch.float32),
           **dict.fromkeys(("terminated", "truncated", *BOOL_INFO), torch.bool), **dict.fromkeys(INT_INFO, torch.int64)}
-
-
-def _write_fsync(path: Path, data: bytes, flags: int) -> None:
-    fd = os.open(path, flags | os.O_WRONLY | os.O_CREAT, 0o644)
-    try:
-        os.write(fd, data)
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
-def _atomic_write(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` via an fsync'd temp file, a rename and a directory fsync (all or nothing)."""
-    tmp = path.with_name(f".{path.name}.tmp")
-    _write_fsync(tmp, data, os.O_TRUNC)
-    os.replace(tmp, path)
-    fd = os.open(path.parent, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
 
 
 def _missing_keys(td: TensorDictBase) -> list[str]:
@@ -226,7 +205,7 @@ class DemonstrationRecorder:
                 "env_config": self.env_config.to_dict(), "observation_size": obs_size,
                 "pe_rlhf_version": __version__, "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
             }
-            _atomic_write(self.directory / "metadata.json", json.dumps(self.metadata, indent=2).encode())
+            replace_bytes(self.directory / "metadata.json", json.dumps(self.metadata, indent=2).encode())
         self.seeds = seeds  # (the recorded ones unless allow_mismatch let other seeds through)
         self.entries = read_manifest(self.directory)
         keep = {Path(e["file"]).name for e in self.entries}
@@ -289,14 +268,15 @@ class DemonstrationRecorder:
         torch.save(td.to_dict(), buf)
         data = buf.getvalue()
         rel = f"episodes/{n:06d}.pt"
-        _atomic_write(self.directory / rel, data)
+        target = self.directory / rel
+        replace_bytes(target, data, tmp=target.with_name(f".{target.name}.tmp"))
         nxt = td.get("next")
         entry = {"episode": n, "file": rel, "steps": t, "scene_seed": int(td.get("scene_seed")[0]),
                  "return": float(nxt.get("reward").sum()), "cost": float(nxt.get("cost").sum()),
                  "success": bool(nxt.get("success")[-1]), "bytes": len(data),
                  "sha256": hashlib.sha256(data).hexdigest(), **extra}
         # One small O_APPEND write cannot be torn by a process kill; fsync makes it durable.
-        _write_fsync(self.directory / "manifest.jsonl", (json.dumps(entry) + "\n").encode(), os.O_APPEND)
+        write_bytes(self.directory / "manifest.jsonl", (json.dumps(entry) + "\n").encode(), append=True)
         self.entries.append(entry)
         return entry
 

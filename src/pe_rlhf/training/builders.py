@@ -120,6 +120,16 @@ def value_is_fitted(cfg) -> bool:
     return parse_value_source(cfg.selector.value)[0] == "warmup"
 
 
+def warmup_selection(cfg) -> bool:
+    """``selector.warmup_selection`` resolved: ``auto`` is on when the selector's value needs no fit
+    (``forecast``, ``expert``) and the mentor drives the warm-up (no ``collector.warmup_policy``)."""
+    if not cfg.selector.enabled:
+        return False
+    if cfg.selector.warmup_selection != "auto":
+        return bool(cfg.selector.warmup_selection)
+    return not value_is_fitted(cfg) and cfg.collector.warmup_policy is None
+
+
 def build_q_ensemble(cfg) -> QEnsemble | None:
     """The selector's value estimator: a fresh ensemble to fit on the warm-up, or the frozen expert that
     ``selector.value`` names (at most ``selector.num_members`` of its members), the physics forecast
@@ -167,7 +177,8 @@ def build_train_env(cfg, env_config, mentor: Mentor, ensemble: QEnsemble | None,
         selector = build_selector(cfg, ensemble)
     warmup_steps = math.ceil(int(cfg.collector.warmup_steps) / num_workers)
     env.append_transform(InterventionTransform(mentor, selector, physics if selector else None,
-                                               warmup_steps=warmup_steps, warmup_driver=build_warmup_driver(cfg)))
+                                               warmup_steps=warmup_steps, warmup_driver=build_warmup_driver(cfg),
+                                               warmup_selection=warmup_selection(cfg)))
     if cfg.disturbance.enabled:
         d = cfg.disturbance
         env.append_transform(TrafficDisturbanceCost(float(d.threshold), float(d.horizon), float(d.follower_range)))

@@ -48,6 +48,7 @@ from typing import Any, Mapping
 import numpy as np
 import torch
 
+from pe_rlhf import durable
 from pe_rlhf.filelock import FileLock
 
 __all__ = [
@@ -71,7 +72,6 @@ BUFFER_NAME = re.compile(r"^[A-Za-z0-9_.-]+$")
 # Pickle opcodes that import or call something: a pickle without them can only build plain data.
 _CODE_OPCODES = frozenset({"GLOBAL", "STACK_GLOBAL", "REDUCE", "INST", "OBJ", "NEWOBJ", "NEWOBJ_EX",
                            "BUILD", "EXT1", "EXT2", "EXT4", "PERSID", "BINPERSID"})
-_HASH_CHUNK = 1 << 22
 
 
 class CheckpointError(ValueError):
@@ -134,45 +134,6 @@ def restore_rng(state: Mapping[str, Any]) -> None:
 
 
 # --------------------------------------------------------------------------- small file helpers
-
-
-def _write_bytes(path: Path, data: bytes) -> None:
-    """Write ``data`` to a new file ``path`` and fsync it (the one place checkpoint files are written)."""
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
-    try:
-        view = memoryview(data)
-        while view:
-            view = view[os.write(fd, view):]
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
-def _fsync_path(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
-def _atomic_write(path: Path, data: bytes) -> None:
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    try:
-        _write_bytes(tmp, data)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    _fsync_path(path.parent)
-
-
-def _sha256_file(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        while chunk := f.read(_HASH_CHUNK):
-            digest.update(chunk)
-    return digest.hexdigest()
 
 
 def _rmtree(path: Path) -> None:
@@ -281,7 +242,7 @@ def _sanitize_prefetch(buffer_dir: Path, buffer) -> None:
     warnings.warn(f"{buffer_dir.name}: the replay buffer's prefetched batches are not checkpointed; "
                   "a resumed buffer samples them anew", stacklevel=3)
     path.unlink()
-    _write_bytes(path, pickle.dumps(state, protocol=4))
+    durable.write_bytes(path, pickle.dumps(state, protocol=4))
 
 
 def _check_buffer_files(buffer_dir: Path) -> None:
@@ -305,7 +266,7 @@ def _check_buffer_files(buffer_dir: Path) -> None:
 
 
 def _manifest_entry(path: Path) -> dict[str, Any]:
-    return {"bytes": path.stat().st_size, "sha256": _sha256_file(path)}
+    return {"bytes": path.stat().st_size, "sha256": durable.sha256_file(path)}
 
 
 def _prune(directory: Path, newest: Path, keep: int) -> None:
@@ -389,9 +350,9 @@ def save_checkpoint(
         old, renamed, published = None, False, False
         try:
             tmp.mkdir()
-            _write_bytes(tmp / TENSORS, tensors_bytes)
-            _write_bytes(tmp / STATE, state_bytes)
-            _write_bytes(tmp / RNG, rng_bytes)
+            durable.write_bytes(tmp / TENSORS, tensors_bytes)
+            durable.write_bytes(tmp / STATE, state_bytes)
+            durable.write_bytes(tmp / RNG, rng_bytes)
             buffers_meta = {}
             for name, buffer in replay_buffers.items():
                 if _buffer_is_empty(buffer):
@@ -407,10 +368,10 @@ def save_checkpoint(
                 if rel == TENSORS:
                     files[rel] = {"bytes": len(tensors_bytes), "sha256": hashlib.sha256(tensors_bytes).hexdigest()}
                     continue
-                _fsync_path(path)
+                durable.fsync_path(path)
                 files[rel] = _manifest_entry(path)
             for sub in sorted(p for p in tmp.rglob("*") if p.is_dir()):
-                _fsync_path(sub)
+                durable.fsync_path(sub)
             marker = {
                 "format_version": FORMAT_VERSION,
                 "step": step,
@@ -421,15 +382,15 @@ def save_checkpoint(
                 "files": files,
                 "torch": torch.__version__,
             }
-            _write_bytes(tmp / MARKER, json.dumps(marker, indent=1, sort_keys=True).encode())
-            _fsync_path(tmp)
+            durable.write_bytes(tmp / MARKER, json.dumps(marker, indent=1, sort_keys=True).encode())
+            durable.fsync_path(tmp)
             if final.exists():  # re-saving a step: move the old one aside, swap, then delete it
                 old = directory / f"{OLD_PREFIX}{step:09d}-{os.getpid()}"
                 os.rename(final, old)
             os.rename(tmp, final)
             renamed = True
-            _fsync_path(directory)
-            _atomic_write(directory / LATEST, f"{final.name}\n".encode())
+            durable.fsync_path(directory)
+            durable.replace_bytes(directory / LATEST, f"{final.name}\n".encode())
             published = True
             if old is not None:
                 _rmtree(old)
@@ -517,7 +478,7 @@ def _verify_files(ckpt: Path, marker: dict[str, Any]) -> None:
         if size != entry.get("bytes"):
             raise CheckpointError(f"checkpoint file {path} is truncated or corrupt: {size} bytes, "
                                   f"{MARKER} says {entry.get('bytes')}")
-        if _sha256_file(path) != entry.get("sha256"):
+        if durable.sha256_file(path) != entry.get("sha256"):
             raise CheckpointError(f"checkpoint file {path} is corrupt: its sha256 differs from {MARKER}'s")
     for bdir in ckpt.glob(f"{BUFFER_PREFIX}*"):  # torchrl would read unlisted files too
         for path in bdir.rglob("*"):

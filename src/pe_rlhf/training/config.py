@@ -45,7 +45,7 @@ DEFAULTS: dict[str, Any] = {
     "mentor": {"name": "professional", "seed": 0, "kwargs": {}},
     "physics": {"enabled": True, "see_obstacles": False, "stop_for_obstacles": True, "use_idm": True, "use_mobil": True},
     "selector": {"enabled": True, "value": "forecast", "epsilon_select": None, "variance_threshold": None,
-                 "switch_margin": None, "num_members": 5,
+                 "switch_margin": None, "warmup_selection": "auto", "num_members": 5,
                  "hidden": [256, 256], "warmup_fit_steps": 3000, "refresh_every": 0, "refresh_steps": 500,
                  "refresh_data": "warmup",
                  "fit_loss": "mean", "target_noise": 0.1, "tau": 0.005, "lr": 3.0e-4, "batch_size": 256},
@@ -370,6 +370,7 @@ RULES: dict[str, Rule] = {
     "selector.refresh_steps": _int(0), "selector.fit_loss": _choice(*FIT_LOSSES),
     "selector.refresh_data": _choice(*REFRESH_DATA),
     "selector.value": _value_source, "selector.switch_margin": _optional(_number(0)),
+    "selector.warmup_selection": lambda v: None if v == "auto" or isinstance(v, bool) else "allowed: auto, true, false",
     "selector.target_noise": _number(0), "selector.tau": _number(0, 1, lo_open=True), "selector.lr": _number(0, lo_open=True),
     "selector.batch_size": _int(1),
     "collector.total_frames": _int(1), "collector.frames_per_batch": _int(1),
@@ -450,6 +451,15 @@ def _check_relations(cfg: DictConfig) -> None:
         raise _fail("collector.warmup_policy", c.warmup_policy,
                     "drives the warm-up, but collector.warmup_steps is 0: give the warm-up steps, or null")
     method_name(cfg)  # physics/selector combination
+    if cfg.selector.enabled and cfg.selector.warmup_selection is True:
+        from pe_rlhf.training.value_expert import parse_value_source
+
+        if parse_value_source(cfg.selector.value)[0] == "warmup":
+            raise _fail("selector.warmup_selection", True, "needs a value source that is not fitted on the warm-up "
+                        "(selector.value=forecast or expert): use auto or false")
+        if c.warmup_policy is not None:
+            raise _fail("selector.warmup_selection", True, "judges the mentor's warm-up, but collector.warmup_policy "
+                        "drives it: use auto or false")
     if cfg.selector.enabled:
         for field in ("collector.warmup_steps", "selector.warmup_fit_steps"):
             if OmegaConf.select(cfg, field) < 1:

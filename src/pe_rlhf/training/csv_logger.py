@@ -26,6 +26,8 @@ from typing import Any
 
 from torchrl.record.loggers.common import Logger, _make_metrics_safe
 
+from pe_rlhf import durable
+
 STEP = "step"
 CSV_NAME = "metrics.csv"
 
@@ -149,15 +151,9 @@ class CrashSafeCSV:
 
     def _fsync_dir(self) -> None:
         try:
-            fd = os.open(self.path.parent, os.O_RDONLY)
-        except OSError:  # e.g. Windows: directories cannot be opened
-            return
-        try:
-            os.fsync(fd)
-        except OSError:
+            durable.fsync_path(self.path.parent)
+        except OSError:  # a file system that cannot sync directories: the rename itself still stands
             pass
-        finally:
-            os.close(fd)
 
 
 class CrashSafeCSVLogger(Logger):

@@ -41,7 +41,8 @@ from typing import Any
 import torch
 from tensordict import TensorDict, TensorDictBase
 
-from pe_rlhf.training.checkpoint import CheckpointError, _atomic_write, _short, capture_rng
+from pe_rlhf import durable
+from pe_rlhf.training.checkpoint import CheckpointError, _short, capture_rng
 
 __all__ = ["BatchJournal", "JournalEntry"]
 
@@ -97,7 +98,7 @@ class BatchJournal:
         data = buf.getvalue()
         path = self.directory / name(hashlib.sha256(data).hexdigest()[:16])
         try:
-            _atomic_write(path, data)
+            durable.replace_bytes(path, data)
         except OSError as e:
             raise OSError(e.errno, f"could not journal frames {start}-{end} to {path}: "
                                    f"{e.strerror or e}") from e

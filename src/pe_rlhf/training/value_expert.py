@@ -16,7 +16,6 @@ it cannot know that an action is bad; a SAC critic trained on the env reward has
 
 from __future__ import annotations
 
-import hashlib
 import json
 from importlib import resources
 from pathlib import Path
@@ -24,6 +23,7 @@ from typing import Any
 
 import torch
 
+from pe_rlhf.durable import sha256_file
 from pe_rlhf.modules import QEnsemble, load_q_ensemble, q_ensemble_from_critics, save_q_ensemble
 
 VALUE_SOURCES = ("expert", "expert:PATH", "warmup", "forecast")
@@ -101,14 +101,6 @@ def load_value_expert(source: str | Path | None, obs_dim: int, max_members: int 
     return ensemble.requires_grad_(False).eval()
 
 
-def sha256_of(path: str | Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            digest.update(chunk)
-    return digest.hexdigest()
-
-
 def export_value_expert(run_dir: str | Path, out_file: str | Path, provenance: dict[str, Any] | None = None) -> dict:
     """Write the critics of ``run_dir``'s newest checkpoint as a Q-ensemble file ``out_file`` and its provenance
     (``provenance`` plus the run's config, members, observation width, sha256 of the file) beside it as
@@ -128,11 +120,11 @@ def export_value_expert(run_dir: str | Path, out_file: str | Path, provenance: d
         "obs_dim": ensemble.obs_dim,
         "hidden": list(ensemble.hidden),
         "file": out_file.name,
-        "sha256": sha256_of(out_file),
+        "sha256": sha256_file(out_file),
     }
     out_file.with_suffix(PROVENANCE_SUFFIX).write_text(json.dumps(record, indent=2) + "\n")
     return record
 
 
 __all__ = ["PACKAGED_EXPERT", "VALUE_SOURCES", "critics_of_run", "export_value_expert", "load_value_expert",
-           "packaged_expert_path", "parse_value_source", "sha256_of"]
+           "packaged_expert_path", "parse_value_source"]

@@ -15,9 +15,11 @@ Writes under ``next`` (step outputs, float32 / bool with a trailing dim of 1 for
 ``intervention_start`` (1,)  first step of a takeover
 ``intervention_cost`` (1,)   ``1 - cos(a_AV, a_exec)`` at a start, else 0 (1 if a norm is ~0)
 ``mentor_action`` (A,)       the mentor's proposal (always present)
-``physics_action`` (A,)      the physics proposal during a PE-RLHF takeover, else zeros (also in warm-up)
+``physics_action`` (A,)      the physics proposal during a PE-RLHF takeover, else zeros (in warm-up too,
+                             unless ``warmup_selection``)
 ``mentor_selected`` (1,)     the mentor's action was executed in a takeover (always in HACO and in a
-                             mentor-driven warm-up; never in a warm-up driven by ``warmup_driver``)
+                             mentor-driven warm-up without ``warmup_selection``; never in a warm-up
+                             driven by ``warmup_driver``)
 ===========================  =========================================================
 
 A non-finite agent proposal (a diverged actor) is never executed: its NaN/inf entries become 0 (straight,
@@ -53,6 +55,9 @@ class InterventionTransform(Transform):
         physics: a callable ``physics(env) -> action`` (e.g. ``IDMMobilPolicy()``), required with a selector.
         warmup_steps: for the first ``warmup_steps`` steps the mentor (or ``warmup_driver``) always drives
             and the selector is bypassed (the warm-up data that trains the Q-ensemble).
+        warmup_selection: the selector judges the mentor's warm-up actions too (physics proposes every
+            warm-up step): for a value source that needs no fit (the physics forecast, a frozen expert),
+            so a bad mentor's warm-up is as safe as its takeovers. Needs a selector and no ``warmup_driver``.
         warmup_driver: a policy ``driver(observation, env) -> action`` (observation float32 numpy ``(O,)``,
             action ``(A,)``; e.g. :class:`~pe_rlhf.evaluation.TorchRLPolicyAdapter` over a trained actor) that
             drives the warm-up instead of the mentor: the paper's *expert-policy warm-up*. The mentor is
@@ -60,10 +65,11 @@ class InterventionTransform(Transform):
             mentor drives (the *demonstration warm-up*).
     """
 
-    def __init__(self, mentor, selector=None, physics=None, warmup_steps: int = 0, warmup_driver=None):
+    def __init__(self, mentor, selector=None, physics=None, warmup_steps: int = 0, warmup_driver=None,
+                 warmup_selection: bool = False):
         super().__init__(in_keys=[], out_keys=list(OUT_KEYS))
         self.core = TakeoverCore(mentor, selector, physics, warmup_steps, warmup_driver,
-                                 owner="InterventionTransform")
+                                 owner="InterventionTransform", warmup_selection=warmup_selection)
         # The same objects as the core's; attributes of the module as before (a selector is a submodule).
         self.mentor, self.selector, self.physics = mentor, selector, physics
 

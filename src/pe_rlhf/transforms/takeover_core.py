@@ -76,7 +76,7 @@ class TakeoverCore:
     """
 
     def __init__(self, mentor, selector=None, physics=None, warmup_steps: int = 0, warmup_driver=None,
-                 owner: str = "TakeoverCore"):
+                 owner: str = "TakeoverCore", warmup_selection: bool = False):
         if (selector is None) != (physics is None):
             raise ValueError(f"{owner} needs both selector and physics (PE-RLHF) or neither (HACO)")
         if warmup_steps < 0:
@@ -85,8 +85,12 @@ class TakeoverCore:
             raise TypeError(f"warmup_driver must be a policy driver(observation, env) -> action, got "
                             f"{type(warmup_driver).__name__}")
         self.mentor, self.selector, self.physics = mentor, selector, physics
+        if warmup_selection and (selector is None or warmup_driver is not None):
+            raise ValueError(f"{owner}: warmup_selection needs a selector and a mentor-driven warm-up "
+                             "(no warmup_driver)")
         self.warmup_steps = int(warmup_steps)
         self.warmup_driver = warmup_driver
+        self.warmup_selection = bool(warmup_selection)
         self.owner = owner
         self.total_steps = 0
         self._in_takeover = False
@@ -116,6 +120,9 @@ class TakeoverCore:
             takeover, mentor_selected = True, False
         elif warmup:
             takeover, executed, mentor_selected = True, mentor_action, True
+            if self.warmup_selection:  # a value source that needs no fit judges the warm-up too
+                physics_action = np.asarray(self.physics(env), dtype=np.float32)
+                executed, mentor_selected = self._select(env, observation, mentor_action, physics_action)
         elif takeover:
             executed = mentor_action
             if self.selector is not None:

@@ -1,0 +1,84 @@
+"""Durable file writes, the same on POSIX and Windows: every byte written, fsync'd, renamed atomically.
+
+One place for what checkpoints, human-demonstration recordings, the crash-safe CSV and reports need:
+
+- :func:`write_bytes` writes a whole buffer (``os.write`` may write less than asked) and fsyncs it;
+  ``append=True`` appends (one small ``O_APPEND`` write is not torn by a process kill).
+- :func:`replace_bytes` writes a temp file beside ``path``, fsyncs it, renames it over ``path`` and
+  fsyncs the directory: readers see the old file or the new one, never a part.
+- :func:`fsync_path` makes a written file's data, or a directory's entries, durable.
+- :func:`sha256_file` hashes a file in chunks.
+
+Windows: files are opened in binary mode (``O_BINARY``; without it, ``os.write`` translates
+newlines); a file's fsync needs a writable handle, so it is reopened read-write; directories cannot
+be opened there, and NTFS journals renames itself, so a directory fsync is a no-op.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from pathlib import Path
+
+_BINARY = getattr(os, "O_BINARY", 0)  # 0 on POSIX
+_WINDOWS = os.name == "nt"
+_HASH_CHUNK = 1 << 20
+
+
+def write_bytes(path: str | os.PathLike, data: bytes, *, append: bool = False) -> None:
+    """Write all of ``data`` to ``path`` (created; truncated unless ``append``), then fsync it."""
+    mode = os.O_APPEND if append else os.O_TRUNC
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | mode | _BINARY, 0o644)
+    try:
+        view = memoryview(data)
+        while view:
+            view = view[os.write(fd, view):]
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def fsync_path(path: str | os.PathLike) -> None:
+    """fsync an existing file, or a directory's entries (a no-op for directories on Windows)."""
+    path = Path(path)
+    if path.is_dir():
+        if _WINDOWS:
+            return
+        flags = os.O_RDONLY
+    else:
+        flags = (os.O_RDWR if _WINDOWS else os.O_RDONLY) | _BINARY
+    fd = os.open(path, flags)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def replace_bytes(path: str | os.PathLike, data: bytes, *, tmp: str | os.PathLike | None = None) -> Path:
+    """Atomically replace ``path``'s content with ``data`` (temp file, fsync, rename, directory fsync).
+
+    ``tmp``: the temp file's path (beside ``path``); default ``.{name}.tmp-{pid}``. A failure removes
+    the temp file and leaves ``path`` as it was. Out: ``path``.
+    """
+    path = Path(path)
+    tmp = Path(tmp) if tmp is not None else path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    try:
+        write_bytes(tmp, data)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    fsync_path(path.parent)
+    return path
+
+
+def sha256_file(path: str | os.PathLike) -> str:
+    """The hex sha256 of the file at ``path``."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        while chunk := f.read(_HASH_CHUNK):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
+__all__ = ["fsync_path", "replace_bytes", "sha256_file", "write_bytes"]
