@@ -183,6 +183,7 @@ INVALID = [
     ("env.trafic_density", "0.5"),
     ("mentor.name", "expert"),
     ("selector.warmup_selection", "sometimes"),
+    ("optim.threads", "0"),
     ("mentor.seed", "1.5"),
     ("mentor.kwargs.skill", "3"),
     ("physics.use_idm", "maybe"),

@@ -1,10 +1,25 @@
-"""Intra-op thread control: tiny networks run faster (and stay fast on busy cores) on one thread."""
+"""Intra-op thread control that degrades gracefully on a shared machine.
+
+- :func:`torch_threads`: run a block with ``n`` intra-op threads (acting runs on one).
+- :class:`FreeCores`: how many cores other processes leave free, from ``/proc/stat`` (Linux), so the
+  updates take their share of a busy machine instead of fighting for it.
+- ``OMP_WAIT_POLICY=PASSIVE`` is set by ``import pe_rlhf`` (before torch starts OpenMP, unless the
+  variable or ``GOMP_SPINCOUNT`` is already set): OpenMP threads then sleep at barriers instead of
+  spinning. Measured with a 2-thread MLP update while both cores ran other jobs: 582 ms an update with
+  GNU OpenMP's default spinning against 36 ms passive and 28 ms on one thread
+  (``docs/experiments/speed.md``).
+"""
 
 from __future__ import annotations
 
 import contextlib
+import os
+import time
+from pathlib import Path
 
 import torch
+
+PROC_STAT = Path("/proc/stat")
 
 
 @contextlib.contextmanager
@@ -21,3 +36,68 @@ def torch_threads(n: int):
         yield
     finally:
         torch.set_num_threads(previous)
+
+
+def _cpu_jiffies(stat: Path) -> tuple[int, int] | None:
+    """``(busy, total)`` jiffies of all cores from the ``cpu`` line of ``/proc/stat``; None if unreadable."""
+    try:
+        fields = stat.read_text().split("\n", 1)[0].split()
+    except OSError:
+        return None
+    if not fields or fields[0] != "cpu" or len(fields) < 5:
+        return None
+    values = [int(v) for v in fields[1:9]]  # user nice system idle iowait irq softirq steal
+    idle = values[3] + (values[4] if len(values) > 4 else 0)
+    return sum(values) - idle, sum(values)
+
+
+class FreeCores:
+    """The cores other processes leave free since the previous call, as an intra-op thread count.
+
+    ``FreeCores(limit)()`` returns an int in ``[1, limit]`` (``limit``: default ``torch.get_num_threads()``
+    at construction): this machine's cores (the process's CPU affinity) minus the cores the *other*
+    processes kept busy over the interval since the last call (all cores' busy time from ``/proc/stat``
+    less this process's own CPU time). Calls closer than ``min_interval`` seconds return the previous
+    answer; where ``/proc/stat`` cannot be read (not Linux) it returns ``limit``.
+    """
+
+    def __init__(self, limit: int | None = None, min_interval: float = 0.5, stat: str | os.PathLike = PROC_STAT):
+        self.limit = max(1, int(limit if limit is not None else torch.get_num_threads()))
+        self.min_interval = float(min_interval)
+        self.stat = Path(stat)
+        try:
+            self.cores = len(os.sched_getaffinity(0))
+        except AttributeError:  # not Linux
+            self.cores = os.cpu_count() or 1
+        self.hz = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
+        self.count = self.limit
+        self._last = self._sample()
+
+    def _sample(self) -> tuple[float, tuple[int, int] | None, float]:
+        return time.monotonic(), _cpu_jiffies(self.stat), time.process_time()
+
+    def __call__(self) -> int:
+        now = self._sample()
+        wall = now[0] - self._last[0]
+        if now[1] is None or self._last[1] is None:
+            return self.limit
+        if wall < self.min_interval:
+            return self.count
+        busy = (now[1][0] - self._last[1][0]) / self.hz  # core-seconds, every process
+        own = now[2] - self._last[2]
+        others = max(0.0, busy - own) / wall  # cores the other processes kept busy
+        self._last = now
+        self.count = max(1, min(self.limit, self.cores - round(others)))
+        return self.count
+
+
+def thread_budget(setting: int | str):
+    """A callable returning the updates' intra-op thread count for ``optim.threads``: a fixed count for an
+    int, :class:`FreeCores` for ``"auto"``."""
+    if setting == "auto":
+        return FreeCores()
+    count = int(setting)
+    return lambda: count
+
+
+__all__ = ["FreeCores", "thread_budget", "torch_threads"]

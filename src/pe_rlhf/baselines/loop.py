@@ -36,7 +36,7 @@ from pe_rlhf.baselines.algorithms import build_learner
 from pe_rlhf.baselines.config import method_of
 from pe_rlhf.baselines.episodes import EpisodeTracker, batch_log
 from pe_rlhf.envs.torchrl_env import make_env
-from pe_rlhf.threads import torch_threads
+from pe_rlhf.threads import FreeCores, torch_threads
 from pe_rlhf.training.builders import obs_dim
 from pe_rlhf.training.config import driving_config
 from pe_rlhf.training.trainer import EVAL_KEYS, _next_multiple, evaluate_actor
@@ -72,7 +72,7 @@ class BaselineRun:
         self.tracker = EpisodeTracker(int(cfg.constraint.window) if "constraint" in cfg else 10)
         self.frames, self.iterations, self.saved_step = 0, 0, -1
         self.seconds = {"env": 0.0, "update": 0.0, "eval": 0.0, "earlier_sessions": 0.0}
-        self.update_threads = torch.get_num_threads()
+        self.free_cores = FreeCores(torch.get_num_threads())  # the updates' threads: what other processes leave
 
     @property
     def total_frames(self) -> int:
@@ -126,7 +126,7 @@ class BaselineRun:
         if self.frames > 0 or not hasattr(self.learner, "pretrain"):
             return
         t_update = time.time()
-        with torch_threads(self.update_threads):
+        with torch_threads(self.free_cores()):
             log = self.learner.pretrain()
         self.seconds["update"] += time.time() - t_update
         self.logger.log(0, {**log, "env_steps": 0, "wall_time": self.wall_time()})
@@ -168,7 +168,7 @@ class BaselineRun:
         self.frames += episodes.steps
         self.iterations += 1
         t_update = time.time()
-        with torch_threads(self.update_threads):
+        with torch_threads(self.free_cores()):
             log = self.learner.learn(batch, self.frames, self.tracker)
         self.seconds["update"] += time.time() - t_update
         log.update(batch_log(self.tracker, episodes))

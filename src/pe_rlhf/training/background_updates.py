@@ -53,12 +53,14 @@ class _Updater:
     """What both learners share: the UTD budget, counters, the latest losses."""
 
     def __init__(self, loss, optimizers: dict, soft_update, replay, *, updates_per_step,
-                 max_grad_norm: float | None, threads: int, precision: str = "fp32"):
+                 max_grad_norm: float | None, threads, precision: str = "fp32"):
         self.loss, self.optimizers, self.soft_update, self.replay = loss, optimizers, soft_update, replay
         self.precision = str(precision)  # "fp32" | "bf16": update()'s autocast (pe_rlhf.modules.precision)
         self.updates_per_step = _ratio(updates_per_step)
         self.max_grad_norm = None if max_grad_norm is None else float(max_grad_norm)
-        self.threads = max(1, int(threads))
+        # an int, or a callable answering the count for each round of updates (pe_rlhf.threads.FreeCores)
+        self._thread_budget = threads if callable(threads) else None
+        self.threads = max(1, int(threads() if callable(threads) else threads))
         self.lock = threading.Lock()  # replay-buffer extends/samples and the acting actor's weights
         self.frames = 0
         self._done = 0
@@ -99,7 +101,9 @@ class SyncUpdater(_Updater):
     """Updates in the caller's thread: ``notify_frames(n)`` runs the owed updates before returning.
 
     ``policy`` is the actor itself (nothing runs concurrently with acting); updates run on
-    ``threads`` intra-op threads (acting stays on its own count once they return).
+    ``threads`` intra-op threads (acting stays on its own count once they return): an int, or a callable
+    asked before each round of updates (:class:`~pe_rlhf.threads.FreeCores`: the cores other processes
+    leave free), the count of the last round in ``threads``.
     """
 
     def __init__(self, loss, optimizers: dict, soft_update, replay, *, updates_per_step, max_grad_norm,
@@ -115,6 +119,8 @@ class SyncUpdater(_Updater):
         self.frames += int(n)
         if self.backlog <= 0:
             return
+        if self._thread_budget is not None:
+            self.threads = max(1, int(self._thread_budget()))
         with torch_threads(self.threads):
             while self._done < self.updates_owed:
                 self._losses = self._update_once()

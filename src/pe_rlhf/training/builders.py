@@ -48,6 +48,7 @@ from pe_rlhf.transforms import (
     RealtimePacing,
     TrafficDisturbanceCost,
 )
+from pe_rlhf.threads import FreeCores
 from pe_rlhf.training.value_expert import load_value_expert, parse_value_source
 
 OBS_DIM = 250  # the default world's observation (240 lidar beams); obs_dim(cfg) follows env.lidar_beams and env.lane_features
@@ -354,7 +355,8 @@ def build_updater(cfg, loss: PERLHFLoss, optimizers: dict, soft_update: SoftUpda
                   update_threads: int):
     """The learner (:mod:`pe_rlhf.training.background_updates`): ``optim.updates_per_batch`` updates per
     ``collector.frames_per_batch`` frames, in a thread beside acting with ``optim.async_updates`` (on the
-    ``update_threads - 1`` threads acting leaves), else inline on ``update_threads``."""
+    ``update_threads - 1`` threads acting leaves), else inline: on ``optim.threads`` threads, ``auto``
+    the cores other processes leave free (at most ``update_threads``; :class:`~pe_rlhf.threads.FreeCores`)."""
     from fractions import Fraction
 
     from pe_rlhf.training.background_updates import BackgroundUpdater, SyncUpdater
@@ -363,4 +365,6 @@ def build_updater(cfg, loss: PERLHFLoss, optimizers: dict, soft_update: SoftUpda
               "max_grad_norm": cfg.optim.max_grad_norm, "precision": str(cfg.optim.precision), "actor": actor}
     if cfg.optim.async_updates:
         return BackgroundUpdater(loss, optimizers, soft_update, replay, threads=max(1, update_threads - 1), **kwargs)
-    return SyncUpdater(loss, optimizers, soft_update, replay, threads=update_threads, **kwargs)
+    setting = cfg.optim.threads
+    threads = FreeCores(update_threads) if setting == "auto" else int(setting)
+    return SyncUpdater(loss, optimizers, soft_update, replay, threads=threads, **kwargs)

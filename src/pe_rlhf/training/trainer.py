@@ -347,6 +347,7 @@ class _Run:
         c.updates = self.updates0 + self.updater.updates_done
         c.update_seconds = self.update_seconds0 + self.updater.update_seconds
         metrics = iteration_log(c, m, self.losses, self.started)
+        metrics["time/update_threads"] = float(self.updater.threads)
         metrics["train/update_backlog"] = float(backlog)
         metrics.update(pacing_log(self.pacing, int(m["steps"])))
         disconnects = int(getattr(self.mentor, "disconnects", 0) or 0)  # a person's window closed, pad unplugged

@@ -1,0 +1,115 @@
+"""``pe_rlhf.threads``: the updates take the cores other processes leave, and OpenMP threads sleep."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import pytest
+
+from pe_rlhf import threads
+
+
+class FakeClock:
+    def __init__(self):
+        self.wall = self.cpu = 0.0
+
+    def monotonic(self):
+        return self.wall
+
+    def process_time(self):
+        return self.cpu
+
+
+def _write_stat(path, busy, idle):
+    # user nice system idle iowait irq softirq steal: busy jiffies all in "user", idle in "idle"
+    path.write_text(f"cpu  {busy} 0 0 {idle} 0 0 0 0 0 0\ncpu0 0 0 0 0 0 0 0 0 0 0\n")
+
+
+def test_free_cores_subtracts_what_other_processes_use(tmp_path, monkeypatch):
+    stat, clock = tmp_path / "stat", FakeClock()
+    monkeypatch.setattr(threads, "time", clock)
+    _write_stat(stat, 0, 0)
+    free = threads.FreeCores(limit=4, stat=stat)
+    free.cores, free.hz = 4, 100
+    # 1 s: all 4 cores busy (400 jiffies), 1 core-second of it ours: 3 cores taken by others -> 1 thread
+    clock.wall, clock.cpu = 1.0, 1.0
+    _write_stat(stat, 400, 0)
+    assert free() == 1
+    # next second: only our own core busy -> all 4 free again (capped at the limit)
+    clock.wall, clock.cpu = 2.0, 2.0
+    _write_stat(stat, 500, 300)
+    assert free() == 4
+    # next second: one other process busy besides us -> 3
+    clock.wall, clock.cpu = 3.0, 3.0
+    _write_stat(stat, 700, 500)
+    assert free() == 3
+    # a call within min_interval keeps the last answer; an unreadable stat gives the limit
+    clock.wall = 3.1
+    assert free() == 3
+    stat.unlink()
+    clock.wall = 5.0
+    assert free() == 4
+
+
+def test_free_cores_on_this_machine_is_a_valid_count():
+    free = threads.FreeCores(min_interval=0.0)
+    sum(i * i for i in range(200_000))  # some of our own CPU time: never counted against us
+    assert 1 <= free() <= free.limit
+
+
+def test_thread_budget():
+    assert threads.thread_budget(3)() == 3
+    assert isinstance(threads.thread_budget("auto"), threads.FreeCores)
+
+
+@pytest.mark.parametrize("env, expected", [({}, "PASSIVE"), ({"OMP_WAIT_POLICY": "ACTIVE"}, "ACTIVE"),
+                                           ({"GOMP_SPINCOUNT": "300000"}, "unset")])
+def test_importing_pe_rlhf_makes_openmp_threads_passive_unless_told_otherwise(env, expected):
+    clean = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")}
+    out = subprocess.run([sys.executable, "-c", "import pe_rlhf, os; print(os.environ.get('OMP_WAIT_POLICY', 'unset'))"],
+                         env={**clean, **env}, capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == expected
+
+
+def test_sync_updater_asks_the_budget_before_each_round():
+    import torch
+    from tensordict import TensorDict
+    from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+
+    from pe_rlhf.training.background_updates import SyncUpdater
+
+    asked, seen = [], []
+
+    def budget():
+        asked.append(len(asked) % 2 + 1)  # 1, 2, 1, ...
+        return asked[-1]
+
+    class Loss(torch.nn.Module):  # records the thread count each update runs on
+        def __init__(self):
+            super().__init__()
+            self.net = torch.nn.Linear(2, 1)
+
+        def forward(self, td):
+            seen.append(torch.get_num_threads())
+            return TensorDict({"loss_q": self.net(td["x"]).pow(2).mean()}, [])
+
+    loss = Loss()
+    net = loss.net
+    opt = torch.optim.SGD(net.parameters(), 0.1)
+
+    class NoTargets:  # the Polyak step of a loss without target networks
+        def step(self):
+            pass
+
+    replay = TensorDictReplayBuffer(storage=LazyTensorStorage(10), batch_size=4)
+    replay.extend(TensorDict({"x": torch.randn(10, 2)}, [10]))
+    before = torch.get_num_threads()
+    updater = SyncUpdater(loss, {"q": opt}, NoTargets(), replay, updates_per_step=1, max_grad_norm=None, actor=net,
+                          threads=budget)
+    for _ in range(3):
+        updater.notify_frames(2)
+    assert asked == [1, 2, 1, 2]  # once at construction, then once per round
+    assert seen == [2, 2, 1, 1, 2, 2] and updater.threads == 2
+    assert torch.get_num_threads() == before  # acting keeps its own count
