@@ -1,4 +1,4 @@
-"""Collection env steps/s per ``collector.backend``: single vs multisync vs multiasync, same run.
+"""Collection env steps/s per ``collector.backend``: single vs multisync vs multiasync vs ray, same run.
 
 Every backend collects with the recipe's PE-RLHF env (``InterventionTransform``: professional mentor,
 IDM-MOBIL, a 5-member selector; ``warmup_steps=1`` so the selector runs from the second step) and a
@@ -7,7 +7,9 @@ frames after the first batch. Backends are timed in interleaved rounds (these ma
 and each is reported as its median steps/s and as a ratio against ``single`` from the same run.
 
     python benchmarks/collector_backends.py [--frames 2000] [--frames-per-batch 100] [--workers 2]
-        [--rounds 2] [--profile paper] [--json out.json]
+        [--rounds 2] [--profile paper] [--backends single multisync multiasync ray] [--json out.json]
+
+``ray`` runs on a local Ray instance started by the benchmark (``num_cpus`` = workers; its start-up is not timed).
 """
 
 from __future__ import annotations
@@ -53,12 +55,18 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--rounds", type=int, default=2)
     parser.add_argument("--profile", default="paper", help="config profile for the env and selector")
+    parser.add_argument("--backends", nargs="+", default=["single", "multisync", "multiasync", "ray"],
+                        choices=["single", "multisync", "multiasync", "ray"])
     parser.add_argument("--json", default=None, help="write the results here")
     args = parser.parse_args(argv)
     if args.frames < 2 * args.frames_per_batch:
         parser.error("--frames must hold at least two batches (the first is not timed)")
-    backends = ["single", "multisync", "multiasync"]
+    backends = list(dict.fromkeys(["single", *args.backends]))  # single: the ratios' baseline
     runs: dict[str, list[dict]] = {b: [] for b in backends}
+    if "ray" in backends:
+        import ray
+
+        ray.init(address="local", num_cpus=args.workers, include_dashboard=False, log_to_driver=False)
     with torch_threads(1):  # acting runs single-threaded, as in training
         for r in range(args.rounds):
             for backend in backends:
@@ -66,6 +74,8 @@ def main(argv: list[str] | None = None) -> dict:
                 runs[backend].append(run)
                 print(f"round {r}: {backend:10s} {run['steps_per_s']:7.1f} steps/s "
                       f"({run['frames']} frames in {run['seconds']:.1f} s, start-up {run['startup_s']:.1f} s)")
+    if "ray" in backends:
+        ray.shutdown()
     single = statistics.median(run["steps_per_s"] for run in runs["single"])
     summary = {}
     for backend in backends:

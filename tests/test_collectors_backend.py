@@ -143,3 +143,39 @@ def test_smoke_training_with_multisync_writes_finite_metrics(tmp_path):
     assert any(r.get("loss/qvalue") for r in rows[1:])
     assert final["training"]["frames"] == 300 and final["training"]["online_frames"] == 200
     assert (tmp_path / "checkpoints").is_dir() and (tmp_path / "actor.pt").exists()
+
+
+# -- collector.backend=ray on a real local Ray instance --------------------------------------------
+def test_ray_collector_on_local_ray_acts_with_the_pushed_value_estimator():
+    """Two Ray workers collect PE-RLHF batches; after the learner's ensemble is pushed with NaN weights
+    (``push_ensemble_weights``, what the trainer does after the warm-up fit), every takeover in the next
+    batches executes physics: the workers select with the learner's estimator, not their own copies."""
+    ray = pytest.importorskip("ray")
+    cfg = load_config(overrides=["profile=smoke", "collector.backend=ray", "collector.num_workers=2",
+                                 "collector.frames_per_batch=50", "collector.warmup_steps=2", "selector.value=warmup",
+                                 "selector.epsilon_select=-1e9", "mentor.name=adversarial"])
+    ensemble, actor = builders.build_q_ensemble(cfg), builders.build_actor(cfg)
+    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
+    batches = []
+    try:
+        collector = builders.build_collector(cfg, None, actor, 200, ensemble=ensemble)
+        try:
+            for i, batch in enumerate(collector):
+                batches.append(batch.clone())
+                if i == 0:
+                    with torch.no_grad():
+                        for p in ensemble.parameters():
+                            p.fill_(float("nan"))
+                    builders.push_ensemble_weights(collector, ensemble)
+        finally:
+            builders.shutdown_collector(collector)
+    finally:
+        ray.shutdown()
+    assert [b.shape for b in batches] == [torch.Size([2, 25])] * 4  # (workers, time), 200 frames
+    first = batches[0].get(("next", "scene_seed"))
+    assert first[0, 0].item() != first[1, 0].item()  # each worker its own seed, its own scenes
+    before = [_mentor_chosen(b) for b in batches[:1]]
+    after = [_mentor_chosen(b) for b in batches[2:]]  # batch 1 may have started before the push landed
+    assert sum(t for _, t in after) > 0, "the adversarial mentor took over: takeovers to judge"
+    assert before[0][0] > 0  # finite estimator, eps -1e9: the mentor wins
+    assert sum(chosen for chosen, _ in after) == 0  # NaN estimator pushed: physics everywhere

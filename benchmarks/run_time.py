@@ -1,0 +1,129 @@
+"""A short PE-RLHF run's throughput on idle cores and with one core held by another process, interleaved.
+
+    python benchmarks/run_time.py --frames 800 --warmup 200 --rounds 2 --json docs/results/run_time_contention.json
+
+Each run is ``recipes/pe_rlhf/train.py profile=cpu`` (batch 256, one update per env step after the warm-up,
+the physics-forecast selector) for ``--frames`` env steps, no evaluation, in a fresh process. Settings:
+
+- ``shipped``: as shipped: ``import pe_rlhf`` makes OpenMP threads passive (``OMP_WAIT_POLICY=PASSIVE``) and
+  ``optim.threads=auto`` takes the cores other processes leave (:class:`pe_rlhf.threads.FreeCores`);
+- ``spinning``: the earlier behaviour: GNU OpenMP's default spinning at barriers (``GOMP_SPINCOUNT=300000``, what
+  it uses when ``OMP_WAIT_POLICY`` is unset) and ``optim.threads=2``.
+
+Loads: ``idle`` (nothing else running) and ``busy`` (one single-threaded Python busy loop). Rounds alternate
+the order. Throughput: env steps per second of the whole run (warm-up, fit, updates), from the run's own
+``metrics.csv`` (``env_steps``, ``wall_time``), so a run cut at ``--timeout`` still reports its rate so far.
+The figure of merit is busy/idle per setting (the issue's target: >= 0.40 for the shipped setting).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import os
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+SETTINGS = {
+    "shipped": ({}, []),
+    "spinning": ({"GOMP_SPINCOUNT": "300000"}, ["optim.threads=2"]),
+}
+
+
+def _busy_loop() -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-c", "while True: pass"])
+
+
+def run_once(setting: str, frames: int, warmup: int, timeout: float, seed: int = 0) -> dict:
+    """One short run of ``setting`` in a fresh process; its throughput from its metrics.csv."""
+    env_vars, overrides = SETTINGS[setting]
+    out = Path(tempfile.mkdtemp(prefix="run_time_"))
+    env = {k: v for k, v in os.environ.items() if k not in ("OMP_NUM_THREADS", "OMP_WAIT_POLICY", "GOMP_SPINCOUNT",
+                                                              "MKL_NUM_THREADS")}
+    env.update(env_vars, SDL_VIDEODRIVER="dummy")
+    command = [sys.executable, str(ROOT / "recipes" / "pe_rlhf" / "train.py"), "profile=cpu", f"seed={seed}",
+               f"collector.total_frames={frames}", f"collector.warmup_steps={warmup}", "eval.every_frames=0",
+               "eval.episodes=1", "checkpoint.every_frames=0", "selector.warmup_fit_steps=1", *overrides,
+               "--out", str(out / "run")]
+    started = time.perf_counter()
+    try:
+        proc = subprocess.run(command, env=env, capture_output=True, text=True, timeout=timeout)
+        finished = proc.returncode == 0
+        if not finished:
+            raise RuntimeError(f"{setting}: the run failed:\n{proc.stderr[-2000:]}")
+    except subprocess.TimeoutExpired:
+        finished = False
+    wall = time.perf_counter() - started
+    rows = list(csv.DictReader(open(out / "run" / "metrics.csv"))) if (out / "run" / "metrics.csv").exists() else []
+    shutil.rmtree(out, ignore_errors=True)
+    rows = [r for r in rows if r.get("env_steps") and r.get("wall_time")]
+    if not rows:
+        return {"setting": setting, "finished": finished, "wall_s": wall, "steps": 0, "steps_per_s": 0.0}
+    last = rows[-1]
+    steps, seconds = float(last["env_steps"]), float(last["wall_time"])
+    return {"setting": setting, "finished": finished, "wall_s": wall, "steps": steps, "train_seconds": seconds,
+            "env_seconds": float(last.get("time/env_seconds") or 0), "update_seconds": float(last.get("time/update_seconds") or 0),
+            "update_threads": float(last.get("time/update_threads") or 0), "steps_per_s": steps / seconds}
+
+
+def measure(settings: list[str], frames: int, warmup: int, rounds: int, timeout: float) -> list[dict]:
+    rows = []
+    for r in range(rounds):
+        order = [(s, load) for s in settings for load in ("idle", "busy")]
+        for setting, load in (order if r % 2 == 0 else order[::-1]):
+            hog = _busy_loop() if load == "busy" else None
+            try:
+                time.sleep(0.5 if hog else 0)
+                row = run_once(setting, frames, warmup, timeout)
+            finally:
+                if hog is not None:
+                    hog.kill()
+                    hog.wait()
+            rows.append({"round": r, "load": load, **row})
+            print(f"round {r} {setting:9s} {load:4s} {row['steps_per_s']:6.2f} steps/s "
+                  f"({row['steps']:.0f} steps{'' if row['finished'] else ', cut at the timeout'})", flush=True)
+    return rows
+
+
+def summarise(rows: list[dict], settings: list[str]) -> dict:
+    out = {}
+    for s in settings:
+        idle = [r["steps_per_s"] for r in rows if r["setting"] == s and r["load"] == "idle"]
+        busy = [r["steps_per_s"] for r in rows if r["setting"] == s and r["load"] == "busy"]
+        ratios = [b / i for b, i in zip(busy, idle) if i > 0]
+        out[s] = {"idle_steps_per_s": statistics.median(idle), "busy_steps_per_s": statistics.median(busy),
+                  "busy_over_idle": statistics.median(ratios) if ratios else None, "per_round": ratios}
+    return out
+
+
+def main(argv=None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--frames", type=int, default=800)
+    parser.add_argument("--warmup", type=int, default=200)
+    parser.add_argument("--rounds", type=int, default=2)
+    parser.add_argument("--timeout", type=float, default=300.0, help="seconds a run may take (its rate so far counts)")
+    parser.add_argument("--settings", nargs="+", choices=sorted(SETTINGS), default=["shipped", "spinning"])
+    parser.add_argument("--json", type=Path, default=None)
+    args = parser.parse_args(argv)
+    rows = measure(args.settings, args.frames, args.warmup, args.rounds, args.timeout)
+    summary = summarise(rows, args.settings)
+    print("| setting | idle steps/s | one core busy | busy / idle |\n|---|---|---|---|")
+    for s, v in summary.items():
+        print(f"| {s} | {v['idle_steps_per_s']:.2f} | {v['busy_steps_per_s']:.2f} | {v['busy_over_idle']:.2f} |")
+    result = {"command": " ".join(["python", "benchmarks/run_time.py", *(argv if argv is not None else sys.argv[1:])]),
+              "cores": os.cpu_count(), "summary": summary, "runs": rows}
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(result, indent=2) + "\n")
+    return result
+
+
+if __name__ == "__main__":
+    main()
