@@ -10,7 +10,12 @@ in each round) on ``--threads`` threads, every update is timed on its own (wall 
 time), and the comparison uses medians: the median update of each loss over all rounds, and the
 median over rounds of the per-round ratio.
 
-    python benchmarks/update_speed.py [--rounds 9] [--updates 4] [--json out.json]
+    python benchmarks/update_speed.py [--rounds 9] [--updates 4] [--precision fp32|bf16] [--json out.json]
+
+Also reported: each update's floating-point work (torch's FLOP formulas, ``torch.utils.flop_counter``: forward,
+backward; Adam and the Polyak step are not matrix work and are not counted), the FLOP rate it achieves, and
+this CPU's matmul ceiling on the same threads (a 1024x1024 product in fp32 and bf16, best of a few): what
+share of the machine an update uses, and whether a ratio above 1 is extra work or extra overhead.
 """
 
 from __future__ import annotations
@@ -23,6 +28,8 @@ import warnings
 
 import torch
 from tensordict import TensorDict
+from torch.utils._python_dispatch import TorchDispatchMode
+from torch.utils.flop_counter import flop_registry
 from torchrl.objectives import SACLoss, SoftUpdate
 
 from pe_rlhf.modules import make_actor, make_qvalue
@@ -30,7 +37,7 @@ from pe_rlhf.objectives import PERLHFLoss
 from pe_rlhf.objectives.perlhf import make_transitions
 
 ACTION_DIM = 2
-RATIO_TARGET = 1.6
+RATIO_TARGET = 1.25
 
 
 def make_batch(batch: int, obs_dim: int, intervention_rate: float, seed: int = 0) -> TensorDict:
@@ -48,13 +55,15 @@ def make_batch(batch: int, obs_dim: int, intervention_rate: float, seed: int = 0
 class Updater:
     """Loss + Adam over all its parameters + SoftUpdate: one ``step()`` is one full update."""
 
-    def __init__(self, loss, lr: float = 3e-4):
+    def __init__(self, loss, lr: float = 3e-4, precision: str = "fp32"):
         self.loss = loss
         self.optim = torch.optim.Adam(loss.parameters(), lr=lr)
         self.target = SoftUpdate(loss, tau=0.005)
+        self.precision = precision
 
     def step(self, batch: TensorDict) -> None:
-        out = self.loss(batch)
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.precision == "bf16"):
+            out = self.loss(batch)
         total = sum(v for k, v in out.items() if k.startswith("loss_"))
         self.optim.zero_grad(set_to_none=True)
         total.backward()
@@ -62,7 +71,8 @@ class Updater:
         self.target.step()
 
 
-def build(obs_dim: int, hidden: tuple[int, ...], intervention_critics: int = 1) -> dict[str, Updater]:
+def build(obs_dim: int, hidden: tuple[int, ...], intervention_critics: int = 1,
+          precision: str = "fp32") -> dict[str, Updater]:
     torch.manual_seed(0)
     sac = SACLoss(make_actor(obs_dim, hidden=hidden), make_qvalue(obs_dim, hidden=hidden), num_qvalue_nets=2,
                   loss_function="l2", target_entropy=-float(ACTION_DIM))
@@ -70,7 +80,46 @@ def build(obs_dim: int, hidden: tuple[int, ...], intervention_critics: int = 1) 
     perlhf = PERLHFLoss(make_actor(obs_dim, hidden=hidden), make_qvalue(obs_dim, hidden=hidden),
                         make_qvalue(obs_dim, hidden=hidden), num_qvalue_nets=2, action_dim=ACTION_DIM,
                         num_intervention_qvalue_nets=intervention_critics)
-    return {"sac": Updater(sac), "perlhf": Updater(perlhf)}
+    return {"sac": Updater(sac, precision=precision), "perlhf": Updater(perlhf, precision=precision)}
+
+
+class CountFlops(TorchDispatchMode):
+    """Adds up torch's FLOP formulas (``flop_registry``: matrix products, convolutions) of every op run under
+    it. ``FlopCounterMode`` itself cannot be used: its module tracker tests TensorDict modules for truth."""
+
+    def __init__(self):
+        super().__init__()
+        self.total = 0
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        kwargs = kwargs or {}
+        out = func(*args, **kwargs)
+        formula = flop_registry.get(func._overloadpacket)
+        if formula is not None:
+            self.total += int(formula(*args, **kwargs, out_val=out))
+        return out
+
+
+def update_flops(updater: Updater, batch: TensorDict) -> int:
+    """Floating-point operations of one update's forward and backward (matrix products dominate)."""
+    with CountFlops() as counter:
+        updater.step(batch.copy())
+    return counter.total
+
+
+def matmul_ceiling(threads: int, dtype: torch.dtype, size: int = 1024, repeats: int = 10) -> float:
+    """GFLOP/s of a ``size x size`` linear layer (``F.linear``, the networks' own path) on ``threads`` threads:
+    best of 5 timings of ``repeats`` (the caller has set the thread count)."""
+    x, w, b = (torch.randn(size, size).to(dtype), torch.randn(size, size).to(dtype), torch.randn(size).to(dtype))
+    for _ in range(2):
+        torch.nn.functional.linear(x, w, b)
+    best = float("inf")
+    for _ in range(5):
+        t = time.perf_counter()
+        for _ in range(repeats):
+            torch.nn.functional.linear(x, w, b)
+        best = min(best, (time.perf_counter() - t) / repeats)
+    return 2 * size ** 3 / best / 1e9
 
 
 def time_update(updater: Updater, batch: TensorDict) -> tuple[float, float]:
@@ -94,16 +143,20 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--intervention-critics", type=int, default=1,
                         help="copies of Q_int in PERLHFLoss (1 = the paper's single critic, the default; "
                              "2 = the authors' twin)")
+    parser.add_argument("--precision", choices=["fp32", "bf16"], default="fp32",
+                        help="bf16: the losses' forward under bf16 autocast, as optim.precision=bf16")
     parser.add_argument("--json", default=None, help="write the results here")
     args = parser.parse_args(argv)
 
     warnings.filterwarnings("ignore", category=UserWarning)  # torchrl's target-updater notes
     torch.set_num_threads(args.threads)
     batch = make_batch(args.batch, args.obs_dim, args.intervention_rate)
-    updaters = build(args.obs_dim, (args.hidden, args.hidden), args.intervention_critics)
+    updaters = build(args.obs_dim, (args.hidden, args.hidden), args.intervention_critics, args.precision)
     for _ in range(args.warmup):
         for updater in updaters.values():
             updater.step(batch.copy())
+    flops = {name: update_flops(u, batch) for name, u in updaters.items()}
+    ceiling = {"fp32": matmul_ceiling(args.threads, torch.float32), "bf16": matmul_ceiling(args.threads, torch.bfloat16)}
 
     wall: dict[str, list[list[float]]] = {name: [] for name in updaters}
     cpu: dict[str, list[list[float]]] = {name: [] for name in updaters}
@@ -141,12 +194,22 @@ def main(argv: list[str] | None = None) -> dict:
         "perlhf_cpu_ms_median": overall(cpu, "perlhf"),
         "cpu_ratio_median_of_rounds": statistics.median(cpu_ratios),
         "ratio_target": RATIO_TARGET,
+        "gflop_per_update": {name: f / 1e9 for name, f in flops.items()},
+        "flop_ratio": flops["perlhf"] / flops["sac"],
+        "achieved_gflops": {"sac": flops["sac"] / sac_ms / 1e6, "perlhf": flops["perlhf"] / perlhf_ms / 1e6},
+        "matmul_ceiling_gflops": ceiling,
+        "share_of_ceiling": {"sac": flops["sac"] / sac_ms / 1e6 / ceiling[args.precision],
+                             "perlhf": flops["perlhf"] / perlhf_ms / 1e6 / ceiling[args.precision]},
         "sac_ms_per_update": wall["sac"],
         "perlhf_ms_per_update": wall["perlhf"],
     }
     print(f"median: SAC {sac_ms:.1f} ms/update, PE-RLHF {perlhf_ms:.1f} ms/update, "
           f"ratio {result['ratio_of_medians']:.2f}, median of per-round ratios {result['ratio_median_of_rounds']:.2f} "
           f"(CPU time {result['cpu_ratio_median_of_rounds']:.2f}); target <= {RATIO_TARGET}")
+    print(f"work: SAC {result['gflop_per_update']['sac']:.2f} GFLOP, PE-RLHF {result['gflop_per_update']['perlhf']:.2f} "
+          f"GFLOP an update (x{result['flop_ratio']:.2f}); achieved {result['achieved_gflops']['sac']:.0f} / "
+          f"{result['achieved_gflops']['perlhf']:.0f} GFLOP/s against a {args.precision} matmul ceiling of "
+          f"{ceiling[args.precision]:.0f} GFLOP/s (fp32 {ceiling['fp32']:.0f}, bf16 {ceiling['bf16']:.0f})")
     if args.json:
         with open(args.json, "w") as f:
             json.dump(result, f, indent=2)

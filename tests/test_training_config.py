@@ -357,3 +357,15 @@ def test_warmup_selection_true_where_it_cannot_work_names_why(overrides, message
     with pytest.raises(ConfigError, match=message) as info:
         load_config(overrides=[*overrides, "selector.warmup_selection=true"])
     assert info.value.field == "selector.warmup_selection"
+
+
+def test_configuration_reference_page_is_the_rules_own_table():
+    """docs/guide/configuration.md shows every field, its default and what is allowed, as the rules say it."""
+    from pe_rlhf.training.config import RULES, reference_table
+
+    table = reference_table()
+    page = (Path(__file__).resolve().parents[1] / "docs" / "guide" / "configuration.md").read_text()
+    assert table in page, "regenerate the table: python -c 'from pe_rlhf.training.config import reference_table; print(reference_table())'"
+    assert len(table.splitlines()) == len(RULES) + 2
+    assert "| `optim.lr` | `0.0001` | must be a finite number > 0 |" in table
+    assert "| `collector.warmup_policy` | `null` | a non-empty string, or null |" in table

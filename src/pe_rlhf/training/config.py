@@ -401,6 +401,24 @@ RULES: dict[str, Rule] = {
 # --------------------------------------------------------------------------- validation
 
 
+_PROBE = "\0"  # a value every rule refuses (its message says what is allowed); a plain string rule accepts it
+
+
+def reference_table() -> str:
+    """The recipe config's fields as a Markdown table: field, default, what is allowed (each rule's own words).
+
+    ``docs/guide/configuration.md`` holds this table (a test keeps them equal). ``env.*`` takes any
+    ``DrivingConfig`` field and ``mentor.kwargs`` the mentor's arguments; their checks are listed below it.
+    """
+    rows = ["| field | default | allowed |", "|---|---|---|"]
+    for field, rule in RULES.items():
+        default = _default(field)
+        allowed = rule(_PROBE) or ("a non-empty string" + (", or null" if default is None else ""))
+        shown = "null" if default is None else str(default).lower() if isinstance(default, bool) else default
+        rows.append(f"| `{field}` | `{shown}` | {allowed.replace('|', '/')} |")
+    return "\n".join(rows)
+
+
 def validate_config(cfg: DictConfig) -> None:
     """Check every field (:data:`RULES`), the env (as a DrivingConfig), the mentor's kwargs, and the
     fields that constrain each other; raise :class:`ConfigError` at the first problem."""
