@@ -19,6 +19,12 @@ never runs ahead of the data. The trainer drives either through the same calls::
 behaviour with simulated mentors). :class:`BackgroundUpdater` runs them in a daemon thread while
 the collector keeps stepping the env, so a person driving at a fixed frame rate never sees the
 display stall for an update burst (torch ops release the GIL, so the thread overlaps the env).
+
+The learner on a device (``device="cuda"``, ``optim.device``): the loss module (actor, critics, targets)
+lives there, each replay sample is moved there, and acting runs a CPU copy of the actor
+(``acting_actor``, also the one to evaluate) whose weights are copied from the learner's after every
+round of updates, as TorchRL collectors sync policy weights. With ``device=None`` the learner's own actor
+acts (SyncUpdater) and nothing is copied.
 """
 
 from __future__ import annotations
@@ -53,8 +59,9 @@ class _Updater:
     """What both learners share: the UTD budget, counters, the latest losses."""
 
     def __init__(self, loss, optimizers: dict, soft_update, replay, *, updates_per_step,
-                 max_grad_norm: float | None, threads, precision: str = "fp32"):
+                 max_grad_norm: float | None, threads, precision: str = "fp32", device=None):
         self.loss, self.optimizers, self.soft_update, self.replay = loss, optimizers, soft_update, replay
+        self.device = None if device is None else torch.device(device)  # None: where the loss already is
         self.precision = str(precision)  # "fp32" | "bf16": update()'s autocast (pe_rlhf.modules.precision)
         self.updates_per_step = _ratio(updates_per_step)
         self.max_grad_norm = None if max_grad_norm is None else float(max_grad_norm)
@@ -85,6 +92,8 @@ class _Updater:
         t = time.perf_counter()
         with self.lock:
             sample = self.replay.sample()
+        if self.device is not None:
+            sample = sample.to(self.device, non_blocking=True)
         losses = update(self.loss, self.optimizers, self.soft_update, sample, self.max_grad_norm, self.precision)
         self.update_seconds += time.perf_counter() - t
         return losses
@@ -107,10 +116,17 @@ class SyncUpdater(_Updater):
     """
 
     def __init__(self, loss, optimizers: dict, soft_update, replay, *, updates_per_step, max_grad_norm,
-                 actor, threads: int | None = None, precision: str = "fp32"):
+                 actor, threads: int | None = None, precision: str = "fp32", device=None):
         super().__init__(loss, optimizers, soft_update, replay, updates_per_step=updates_per_step,
-                         max_grad_norm=max_grad_norm, threads=threads or torch.get_num_threads(), precision=precision)
-        self.policy = actor
+                         max_grad_norm=max_grad_norm, threads=threads or torch.get_num_threads(), precision=precision,
+                         device=device)
+        self.actor = actor
+        self.acting_actor = actor
+        if self.device is not None:  # acting on the CPU: a copy, synced after each round of updates
+            self.acting_actor = copy.deepcopy(actor).to("cpu").requires_grad_(False)
+            self._learner_weights = TensorDict.from_module(actor).data
+            self._acting_weights = TensorDict.from_module(self.acting_actor).data
+        self.policy = self.acting_actor
 
     def start(self) -> None:
         pass
@@ -125,6 +141,8 @@ class SyncUpdater(_Updater):
             while self._done < self.updates_owed:
                 self._losses = self._update_once()
                 self._done += 1
+        if self.device is not None:
+            self._acting_weights.update_(self._learner_weights)
 
     def latest_losses(self) -> dict[str, float]:
         return dict(self._losses)
@@ -190,9 +208,9 @@ class BackgroundUpdater(_Updater):
 
     def __init__(self, loss, optimizers: dict, soft_update, replay, *, updates_per_step, max_grad_norm,
                  actor, threads: int | None = None, publish_every: int = 1, switch_interval: float | None = 0.001,
-                 precision: str = "fp32"):
+                 precision: str = "fp32", device=None):
         super().__init__(loss, optimizers, soft_update, replay, updates_per_step=updates_per_step,
-                         max_grad_norm=max_grad_norm, precision=precision,
+                         max_grad_norm=max_grad_norm, precision=precision, device=device,
                          threads=threads if threads is not None else max(1, torch.get_num_threads() - 1))
         if int(publish_every) < 1:
             raise ValueError(f"publish_every must be >= 1 updates, got {publish_every!r}")
@@ -200,7 +218,7 @@ class BackgroundUpdater(_Updater):
         self.switch_interval = switch_interval
         self._previous_switch_interval: float | None = None
         self.actor = actor
-        self.acting_actor = copy.deepcopy(actor)
+        self.acting_actor = copy.deepcopy(actor).to("cpu")
         self.acting_actor.requires_grad_(False)
         self.policy = LockedPolicy(self.acting_actor, self.lock)
         self._learner_weights = TensorDict.from_module(actor).data
@@ -241,6 +259,8 @@ class BackgroundUpdater(_Updater):
         learner's actor, loss, optimisers and replay buffer. Do not call ``stop`` inside it."""
         self._raise_if_failed()
         with self._in_update:
+            if self.device is not None:  # the CPU copy is what gets evaluated: bring it up to date
+                self._publish()
             yield
 
     def stop(self, finish: bool = True) -> None:

@@ -351,18 +351,33 @@ def find_transform(env, cls):
     return next((t for t in candidates if isinstance(t, cls)), None)
 
 
+def learner_device(cfg) -> torch.device | None:
+    """``optim.device`` resolved: None for the CPU (the learner's actor acts, nothing is copied), else the
+    device the loss module and its updates go to (``auto``: CUDA when torch sees one)."""
+    setting = str(cfg.optim.device)
+    if setting == "auto":
+        setting = "cuda" if torch.cuda.is_available() else "cpu"
+    if setting == "cpu":
+        return None
+    if setting.startswith("cuda") and not torch.cuda.is_available():
+        raise ValueError(f"optim.device={cfg.optim.device!r}: torch sees no CUDA device here; use auto or cpu")
+    return torch.device(setting)
+
+
 def build_updater(cfg, loss: PERLHFLoss, optimizers: dict, soft_update: SoftUpdate, replay, actor,
-                  update_threads: int):
+                  update_threads: int, device: torch.device | None = None):
     """The learner (:mod:`pe_rlhf.training.background_updates`): ``optim.updates_per_batch`` updates per
     ``collector.frames_per_batch`` frames, in a thread beside acting with ``optim.async_updates`` (on the
     ``update_threads - 1`` threads acting leaves), else inline: on ``optim.threads`` threads, ``auto``
-    the cores other processes leave free (at most ``update_threads``; :class:`~pe_rlhf.threads.FreeCores`)."""
+    the cores other processes leave free (at most ``update_threads``; :class:`~pe_rlhf.threads.FreeCores`).
+    ``device`` (:func:`learner_device`): where ``loss`` already is; the updater then acts on a CPU copy."""
     from fractions import Fraction
 
     from pe_rlhf.training.background_updates import BackgroundUpdater, SyncUpdater
 
     kwargs = {"updates_per_step": Fraction(int(cfg.optim.updates_per_batch), int(cfg.collector.frames_per_batch)),
-              "max_grad_norm": cfg.optim.max_grad_norm, "precision": str(cfg.optim.precision), "actor": actor}
+              "max_grad_norm": cfg.optim.max_grad_norm, "precision": str(cfg.optim.precision), "actor": actor,
+              "device": device}
     if cfg.optim.async_updates:
         return BackgroundUpdater(loss, optimizers, soft_update, replay, threads=max(1, update_threads - 1), **kwargs)
     setting = cfg.optim.threads

@@ -54,7 +54,7 @@ DEFAULTS: dict[str, Any] = {
                   "realtime_hz": 0},
     "replay_buffer": {"size": 100000, "batch_size": 1024},
     "optim": {"lr": 1.0e-4, "updates_per_batch": 100, "max_grad_norm": 10.0, "async_updates": False,
-              "threads": "auto", "precision": "fp32"},
+              "threads": "auto", "device": "auto", "precision": "fp32"},
     "loss": {"gamma": 0.99, "tau": 0.005, "gap_coef": 10.0, "gap_margin": None, "psi": 1.0, "intervention_weight": 1.0,
              "cosine_cost": True, "intervention_critic_action": "agent", "num_qvalue_nets": 2,
              "num_intervention_qvalue_nets": 1, "target_entropy": "auto", "alpha_init": 1.0,
@@ -379,6 +379,8 @@ RULES: dict[str, Rule] = {
     "replay_buffer.size": _int(1), "replay_buffer.batch_size": _int(1),
     "optim.lr": _number(0, lo_open=True), "optim.updates_per_batch": _int(1),
     "optim.max_grad_norm": _optional(_number(0, lo_open=True)), "optim.async_updates": _bool,
+    "optim.device": lambda v: None if isinstance(v, str) and re.fullmatch(r"auto|cpu|cuda(:\d+)?", v)
+    else "allowed: auto, cpu, cuda, cuda:N",
     "optim.threads": lambda v: None if v == "auto" or (isinstance(v, int) and not isinstance(v, bool) and v >= 1)
     else "allowed: auto, or an int >= 1",
     "optim.precision": _choice(*PRECISIONS),

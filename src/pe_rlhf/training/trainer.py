@@ -231,6 +231,9 @@ class _Run:
         self.env, self.mentor = builders.build_local_env(cfg, self.env_config, self.ensemble)  # None: workers own them
         self.actor = builders.build_actor(cfg)
         self.loss, soft_update = builders.build_loss(cfg, self.actor)
+        self.device = builders.learner_device(cfg)  # None: the CPU, acting with the learner's actor
+        if self.device is not None:
+            self.loss.to(self.device)  # actor, critics, targets (the actor's parameters are the loss's)
         self.optimizers = builders.build_optimizers(cfg, self.loss)
         self.replay, self.warmup_buffer = builders.build_replay_buffer(cfg), builders.build_replay_buffer(cfg)
         fitted = cfg.selector.enabled and builders.value_is_fitted(cfg)  # an expert is frozen: never fitted
@@ -254,12 +257,17 @@ class _Run:
             self.pending = PendingEpisodesJournal(self.journal, int(cfg.collector.frames_per_batch), self._actor_state)
             self.env.append_transform(self.pending)  # last: it copies each step as the collector stores it
         self.updater = builders.build_updater(cfg, self.loss, self.optimizers, soft_update, self.replay, self.actor,
-                                              update_threads)
+                                              update_threads, self.device)
         self.collector, self.losses, self.saved_step, self.disconnects = None, {}, -1, 0
 
     @property
     def done(self) -> bool:
         return self.counters.frames >= int(self.cfg.collector.total_frames)
+
+    @property
+    def cpu_actor(self):
+        """The actor to evaluate on the CPU: the learner's own, or with ``optim.device`` its synced CPU copy."""
+        return self.actor if self.device is None else self.updater.acting_actor
 
     def run_info(self) -> dict:
         """What a checkpoint must match to be resumed (checked by :func:`check_resumable`)."""
@@ -358,7 +366,7 @@ class _Run:
         if c.frames >= self.next_eval:
             self.next_eval = _next_multiple(c.frames, int(cfg.eval.every_frames))
             with self.updater.paused():
-                summary = evaluate_actor(self.actor, cfg, self.env_config, int(cfg.eval.episodes))
+                summary = evaluate_actor(self.cpu_actor, cfg, self.env_config, int(cfg.eval.episodes))
             for k in EVAL_KEYS:
                 metrics[f"eval/{k}_mean"], metrics[f"eval/{k}_std"] = summary[k]["mean"], summary[k]["std"]
         self.logger.log(int(c.frames), metrics)
@@ -426,11 +434,11 @@ class _Run:
         self.bar.close()
         if self.checkpoint_dir is not None and c.frames > self.saved_step:
             self.save()
-        final = evaluate_actor(self.actor, self.cfg, self.env_config, int(self.cfg.eval.episodes))
+        final = evaluate_actor(self.cpu_actor, self.cfg, self.env_config, int(self.cfg.eval.episodes))
         final["training"] = c.state_dict()
-        torch.save(self.actor.state_dict(), out_dir / "actor.pt")
+        torch.save({k: v.detach().cpu() for k, v in self.actor.state_dict().items()}, out_dir / "actor.pt")
         if self.cfg.eval.video:
-            final["video"] = record_test_video(self.actor, self.cfg, self.env_config, out_dir / VIDEO_NAME,
+            final["video"] = record_test_video(self.cpu_actor, self.cfg, self.env_config, out_dir / VIDEO_NAME,
                                                self.logger, int(c.frames))
         return final
 
