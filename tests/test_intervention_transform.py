@@ -455,3 +455,43 @@ def test_mentor_sees_the_driving_env_or_the_gym_env_unwrapped():
     assert mentor.seen and all(e is gym_env._env.unwrapped for e in mentor.seen)
     assert hasattr(mentor.seen[0], "state")  # PendulumEnv: the true (theta, theta_dot)
     assert td["next", "behavior_action"].shape == (5, 1) and not td["next", "intervention"].any()
+
+
+def test_every_takeover_key_renamed_in_the_transform_and_the_loss_trains():
+    """All seven outputs renamed (``out_keys``), the loss told the new names (``set_keys``): a rollout
+    carries only the new names, and PERLHFLoss takes gradient steps on it."""
+    from pe_rlhf.modules.networks import make_actor, make_qvalue
+    from pe_rlhf.objectives import PERLHFLoss
+    from pe_rlhf.transforms.keys import OUT_KEYS
+
+    renamed = [f"tk_{k}" for k in OUT_KEYS]
+    torch.manual_seed(0)
+    selector = HybridActionSelector(QEnsemble(250, 2, num_members=2, hidden=(16,)), epsilon_select=0.0)
+    env = _env(selector=selector, physics=IDMMobilPolicy(), warmup_steps=5, out_keys=renamed)
+    td = _rollout(env, _alternating_agent(env), 40)
+    nxt = td["next"]
+    assert all(k in nxt.keys() for k in renamed) and not any(k in nxt.keys() for k in OUT_KEYS)
+    assert nxt["tk_intervention"].any() and (nxt["tk_behavior_action"] != td["action"]).any()
+
+    actor, q, q_int = make_actor(250, hidden=(32,)), make_qvalue(250, hidden=(32,)), make_qvalue(250, hidden=(32,))
+    loss = PERLHFLoss(actor, q, q_int, action_dim=2)
+    loss.set_keys(behavior_action=("next", "tk_behavior_action"), intervention=("next", "tk_intervention"),
+                  intervention_start=("next", "tk_intervention_start"),
+                  intervention_cost=("next", "tk_intervention_cost"))
+    optim = torch.optim.Adam(loss.parameters(), lr=1e-3)
+    before = [p.detach().clone() for p in loss.qvalue_network_params.flatten_keys().values()]
+    for _ in range(3):
+        out = loss(td)
+        total = sum(v for k, v in out.items() if k.startswith("loss_"))
+        assert torch.isfinite(total)
+        optim.zero_grad()
+        total.backward()
+        optim.step()
+    after = list(loss.qvalue_network_params.flatten_keys().values())
+    assert any(not torch.equal(a, b) for a, b in zip(before, after))
+    assert out["intervention_rate"] == nxt["tk_intervention"].float().mean()
+
+
+def test_out_keys_must_be_seven_distinct_names():
+    with pytest.raises(ValueError, match="out_keys are 7 distinct names"):
+        InterventionTransform(DriverMentor(), out_keys=["a"] * 7)

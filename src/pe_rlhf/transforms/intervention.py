@@ -7,7 +7,9 @@ physics policy for ``a_phy`` and the selector which of ``a_mentor`` / ``a_phy`` 
 replaces ``action`` only in the tensordict handed to the simulator, so the rollout keeps the
 agent's proposal at the root, as TorchRL does for any action transform.
 
-Writes under ``next`` (step outputs, float32 / bool with a trailing dim of 1 for flags):
+Reads the root ``action`` and ``observation`` (``in_keys``); writes under ``next`` (step outputs, float32 /
+bool with a trailing dim of 1 for flags; ``out_keys`` renames them, in this order, defaults in
+:mod:`pe_rlhf.transforms.keys`):
 
 ===========================  =========================================================
 ``behavior_action`` (A,)     the executed action ``a_exec`` (``a_hybrid`` or ``a_AV``)
@@ -55,6 +57,9 @@ class InterventionTransform(Transform):
         physics: a callable ``physics(env) -> action`` (e.g. ``IDMMobilPolicy()``), required with a selector.
         warmup_steps: for the first ``warmup_steps`` steps the mentor (or ``warmup_driver``) always drives
             and the selector is bypassed (the warm-up data that trains the Q-ensemble).
+        in_keys: ``[action_key, observation_key]``: where the agent's proposal is (and the executed action
+            goes: the env's action key) and the observation the selector and a warm-up driver read.
+        out_keys: the seven step outputs' names, in the order of :data:`~pe_rlhf.transforms.keys.OUT_KEYS`.
         warmup_selection: the selector judges the mentor's warm-up actions too (physics proposes every
             warm-up step): for a value source that needs no fit (the physics forecast, a frozen expert),
             so a bad mentor's warm-up is as safe as its takeovers. Needs a selector and no ``warmup_driver``.
@@ -66,8 +71,14 @@ class InterventionTransform(Transform):
     """
 
     def __init__(self, mentor, selector=None, physics=None, warmup_steps: int = 0, warmup_driver=None,
-                 warmup_selection: bool = False):
-        super().__init__(in_keys=[], out_keys=list(OUT_KEYS))
+                 warmup_selection: bool = False, *, in_keys=("action", "observation"), out_keys=OUT_KEYS):
+        in_keys, out_keys = list(in_keys), list(out_keys)
+        if len(in_keys) != 2 or len(out_keys) != len(OUT_KEYS) or len(set(map(str, out_keys))) != len(OUT_KEYS):
+            raise ValueError(f"InterventionTransform: in_keys are [action, observation] (got {in_keys}); out_keys are "
+                             f"{len(OUT_KEYS)} distinct names in the order {list(OUT_KEYS)} (got {out_keys})")
+        super().__init__(in_keys=in_keys, out_keys=out_keys)
+        self.action_key, self.observation_key = in_keys
+        self._renamed = dict(zip(OUT_KEYS, out_keys))
         self.core = TakeoverCore(mentor, selector, physics, warmup_steps, warmup_driver,
                                  owner="InterventionTransform", warmup_selection=warmup_selection)
         # The same objects as the core's; attributes of the module as before (a selector is a submodule).
@@ -105,20 +116,24 @@ class InterventionTransform(Transform):
             tensordict_reset.set(key, spec.zero())
         return tensordict_reset
 
+    def _call(self, next_tensordict: TensorDictBase) -> TensorDictBase:
+        return next_tensordict  # nothing to do outside an env step (the decision needs the simulator)
+
     def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase:
-        agent_action = tensordict.get("action")
-        d = self.core.decide(self.driving_env, tensordict.get("observation"), agent_action.detach().cpu().numpy())
-        tensordict.set("action", torch.as_tensor(d.behavior_action, dtype=agent_action.dtype))
+        agent_action = tensordict.get(self.action_key)
+        d = self.core.decide(self.driving_env, tensordict.get(self.observation_key),
+                             agent_action.detach().cpu().numpy())
+        tensordict.set(self.action_key, torch.as_tensor(d.behavior_action, dtype=agent_action.dtype))
         return tensordict
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
-        next_tensordict.update(takeover_tensors(self.core.commit()))
+        next_tensordict.update({self._renamed[k]: v for k, v in takeover_tensors(self.core.commit()).items()})
         return next_tensordict
 
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:
-        action_shape = self.parent.full_action_spec["action"].shape if self.parent is not None else (2,)
+        action_shape = self.parent.full_action_spec[self.action_key].shape if self.parent is not None else (2,)
         for key, spec in takeover_specs(action_shape).items():
-            observation_spec[key] = spec
+            observation_spec[self._renamed[key]] = spec
         return observation_spec
 
     def state_dict_extra(self) -> dict:

@@ -17,11 +17,8 @@ import numpy as np
 import torch
 from torchrl.data import Unbounded
 
-OUT_KEYS = ("behavior_action", "intervention", "intervention_start", "intervention_cost", "mentor_action",
-            "physics_action", "mentor_selected")
-ACTION_KEYS = ("behavior_action", "mentor_action", "physics_action")  # float32 (A,)
-FLAG_KEYS = ("intervention", "intervention_start", "mentor_selected")  # bool (1,)
-COST_KEY = "intervention_cost"  # float32 (1,)
+from pe_rlhf.transforms.keys import ACTION_KEYS, COST_KEY, FLAG_KEYS, OUT_KEYS  # noqa: F401 (re-exported)
+
 ZERO_NORM = 1e-6
 
 
