@@ -151,9 +151,11 @@ def test_wrapper_executes_the_agent_or_the_mentor_and_reports_gym_hil_keys():
     assert env.total_steps == 5
 
 
-@pytest.mark.parametrize("mode", ["haco", "warmup", "pe_rlhf-mentor", "pe_rlhf-physics"])
+@pytest.mark.parametrize("mode", ["haco", "warmup", "pe_rlhf-mentor", "pe_rlhf-physics", "pe_rlhf-warmup-physics"])
 def test_wrapper_decides_as_the_transform_on_pendulum(mode):
     kwargs = {"warmup_steps": 30} if mode == "warmup" else {}
+    if mode == "pe_rlhf-warmup-physics":  # the selector judges the warm-up too: physics wins there as well
+        kwargs = {"warmup_steps": 30, "warmup_selection": True}
 
     def pe_rlhf():  # a fresh, identical selector per face
         if not mode.startswith("pe_rlhf"):
@@ -171,8 +173,10 @@ def test_wrapper_decides_as_the_transform_on_pendulum(mode):
     assert taken.any() and (~taken).any() and start.sum() >= 5
     if mode == "warmup":
         assert taken[:30].all()
-    if mode == "pe_rlhf-physics":
+    if mode in ("pe_rlhf-physics", "pe_rlhf-warmup-physics"):
         assert not _flags(expected, "mentor_selected").any()
+    if mode == "pe_rlhf-warmup-physics":  # physics proposed and executed at every warm-up step
+        assert taken[:30].all() and all(np.abs(r["physics_action"]).sum() > 0 for r in expected[:30] if r["intervention"][0])
 
 
 def test_the_info_reader_gives_a_torchrl_env_the_transform_keys():
