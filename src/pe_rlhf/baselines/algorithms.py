@@ -35,7 +35,7 @@ from torchrl.objectives import ClipPPOLoss, SACLoss, SoftUpdate, ValueEstimators
 from pe_rlhf.baselines.episodes import EpisodeTracker
 from pe_rlhf.modules import make_actor, make_qvalue
 from pe_rlhf.objectives import CPOLoss, LagrangeMultiplier, PPOLagLoss, SACLagLoss
-from pe_rlhf.objectives.cpo import _base_normal
+from pe_rlhf.objectives.cpo import base_normal
 from pe_rlhf.training.steps import update
 
 # What a learner keeps of a collected step (the env's info keys are for the tracker only).
@@ -169,7 +169,7 @@ class KLPenalty(nn.Module):
         with self.loss.actor_network_params.to_module(actor, preserve_module_state=False):
             dist = actor.get_dist(tensordict.select(*actor.in_keys, strict=False))
         old = Normal(tensordict.get("loc"), tensordict.get("scale"))
-        kl = kl_divergence(old, _base_normal(dist)).sum(-1).mean()
+        kl = kl_divergence(old, base_normal(dist)).sum(-1).mean()
         out.set("loss_kl", self.kl_coef * kl)
         out.set("kl", kl.detach())
         return out

@@ -46,20 +46,20 @@ from pe_rlhf.training.config import (
     SPLITS,
     WANDB_MODES,
     ConfigError,
-    _bool,
-    _check_env,
-    _check_key,
-    _choice,
-    _fail,
-    _hidden,
-    _int,
-    _leaf_keys,
-    _merge,
-    _number,
-    _optional,
-    _parse_overrides,
-    _string,
-    _target_entropy,
+    rule_bool,
+    check_env,
+    check_key,
+    rule_choice,
+    invalid_value,
+    rule_hidden,
+    rule_int,
+    leaf_keys,
+    merge_values,
+    rule_number,
+    rule_optional,
+    parse_overrides,
+    rule_string,
+    rule_target_entropy,
 )
 
 
@@ -165,7 +165,7 @@ PROFILE_NAMES = ("paper", "cpu", "smoke")
 
 def _method(method: str) -> Method:
     if method not in METHODS:
-        raise _fail("method", method, f"allowed: {list(METHODS)}")
+        raise invalid_value("method", method, f"allowed: {list(METHODS)}")
     return METHODS[method]
 
 
@@ -221,16 +221,16 @@ def load_baseline_config(method: str, path: str | Path | None = None, overrides=
     if path is not None:
         if not path.is_file():
             raise ConfigError(f"config file {str(path)!r} not found")
-        _merge(cfg, OmegaConf.load(path), f"config file {path}")
-    parsed = _parse_overrides(overrides)
+        merge_values(cfg, OmegaConf.load(path), f"config file {path}")
+    parsed = parse_overrides(overrides)
     profile = next((v.strip() for k, v in reversed(parsed) if k == "profile"), cfg.profile)
     if profile not in PROFILE_NAMES:
-        raise _fail("profile", profile, f"allowed: {list(PROFILE_NAMES)}")
+        raise invalid_value("profile", profile, f"allowed: {list(PROFILE_NAMES)}")
     if apply_profile:
-        _merge(cfg, profiles(method)[profile], f"profile {profile!r}")
+        merge_values(cfg, profiles(method)[profile], f"profile {profile!r}")
     cfg.profile = profile
     for key, value in parsed:
-        _check_key(cfg, key, "command-line override")
+        check_key(cfg, key, "command-line override")
         try:
             cfg.merge_with(OmegaConf.from_dotlist([f"{key}={value}"]))
         except OmegaConfBaseException as e:
@@ -243,28 +243,28 @@ def load_baseline_config(method: str, path: str | Path | None = None, overrides=
 # --------------------------------------------------------------------------- field rules
 
 RULES = {
-    "method": _choice(*METHODS), "seed": _int(0), "profile": _choice(*PROFILE_NAMES),
-    "collector.total_frames": _int(1), "collector.frames_per_batch": _int(1),
-    "collector.learning_starts": _int(0), "collector.init_random_frames": _int(0),
-    "replay_buffer.size": _int(1), "replay_buffer.batch_size": _int(1),
-    "optim.lr": _number(0, lo_open=True), "optim.updates_per_batch": _int(1), "optim.epochs": _int(1),
-    "optim.minibatch_size": _int(1), "optim.max_grad_norm": _optional(_number(0, lo_open=True)),
-    "optim.precision": _choice(*PRECISIONS),
-    "loss.gamma": _number(0, 1), "loss.tau": _number(0, 1, lo_open=True), "loss.num_qvalue_nets": _int(1),
-    "loss.target_entropy": _target_entropy, "loss.alpha_init": _number(0, lo_open=True), "loss.hidden": _hidden,
-    "loss.deactivate_vmap": _bool,
-    "loss.num_cost_qvalue_nets": _int(1), "loss.cost_aggregate": _choice("max", "mean", "min"),
-    "loss.gae_lambda": _number(0, 1), "loss.clip_epsilon": _number(0, lo_open=True), "loss.kl_coef": _number(0),
-    "loss.kl_target": _optional(_number(0, lo_open=True)), "loss.entropy_coef": _number(0),
-    "loss.critic_coef": _number(0), "loss.normalize_advantage": _bool,
-    "loss.target_kl": _number(0, lo_open=True), "loss.cg_iterations": _int(1), "loss.cg_damping": _number(0),
-    "loss.backtrack_ratio": _number(0, 1, lo_open=True, hi_open=True), "loss.max_backtracks": _int(1),
-    "constraint.cost_limit": _number(0), "constraint.window": _int(1),
-    "constraint.lambda_lr": _number(0, lo_open=True), "constraint.lambda_init": _number(0),
-    "logger.out_dir": _optional(_string), **{f"logger.{k}": _bool for k in ("csv", "wandb", "tensorboard", "mlflow")},
-    "logger.wandb_mode": _choice(*WANDB_MODES), "logger.wandb_project": _string, "logger.log_every": _int(1),
-    "eval.every_frames": _int(0), "eval.episodes": _int(1), "eval.split": _choice(*SPLITS),
-    "checkpoint.every_frames": _int(0), "checkpoint.keep": _int(1),
+    "method": rule_choice(*METHODS), "seed": rule_int(0), "profile": rule_choice(*PROFILE_NAMES),
+    "collector.total_frames": rule_int(1), "collector.frames_per_batch": rule_int(1),
+    "collector.learning_starts": rule_int(0), "collector.init_random_frames": rule_int(0),
+    "replay_buffer.size": rule_int(1), "replay_buffer.batch_size": rule_int(1),
+    "optim.lr": rule_number(0, lo_open=True), "optim.updates_per_batch": rule_int(1), "optim.epochs": rule_int(1),
+    "optim.minibatch_size": rule_int(1), "optim.max_grad_norm": rule_optional(rule_number(0, lo_open=True)),
+    "optim.precision": rule_choice(*PRECISIONS),
+    "loss.gamma": rule_number(0, 1), "loss.tau": rule_number(0, 1, lo_open=True), "loss.num_qvalue_nets": rule_int(1),
+    "loss.target_entropy": rule_target_entropy, "loss.alpha_init": rule_number(0, lo_open=True), "loss.hidden": rule_hidden,
+    "loss.deactivate_vmap": rule_bool,
+    "loss.num_cost_qvalue_nets": rule_int(1), "loss.cost_aggregate": rule_choice("max", "mean", "min"),
+    "loss.gae_lambda": rule_number(0, 1), "loss.clip_epsilon": rule_number(0, lo_open=True), "loss.kl_coef": rule_number(0),
+    "loss.kl_target": rule_optional(rule_number(0, lo_open=True)), "loss.entropy_coef": rule_number(0),
+    "loss.critic_coef": rule_number(0), "loss.normalize_advantage": rule_bool,
+    "loss.target_kl": rule_number(0, lo_open=True), "loss.cg_iterations": rule_int(1), "loss.cg_damping": rule_number(0),
+    "loss.backtrack_ratio": rule_number(0, 1, lo_open=True, hi_open=True), "loss.max_backtracks": rule_int(1),
+    "constraint.cost_limit": rule_number(0), "constraint.window": rule_int(1),
+    "constraint.lambda_lr": rule_number(0, lo_open=True), "constraint.lambda_init": rule_number(0),
+    "logger.out_dir": rule_optional(rule_string), **{f"logger.{k}": rule_bool for k in ("csv", "wandb", "tensorboard", "mlflow")},
+    "logger.wandb_mode": rule_choice(*WANDB_MODES), "logger.wandb_project": rule_string, "logger.log_every": rule_int(1),
+    "eval.every_frames": rule_int(0), "eval.episodes": rule_int(1), "eval.split": rule_choice(*SPLITS),
+    "checkpoint.every_frames": rule_int(0), "checkpoint.keep": rule_int(1),
     **imitation_config.RULES,
 }
 
@@ -272,8 +272,8 @@ RULES = {
 def validate_baseline_config(cfg: DictConfig, method: str) -> None:
     """Check every field of ``method``'s config (:data:`RULES`), the env (as a DrivingConfig) and the
     fields that bound each other; raise :class:`ConfigError` naming the first bad field."""
-    expected = set(_leaf_keys(default_config(method)))
-    present = set(_leaf_keys(OmegaConf.to_container(cfg)))
+    expected = set(leaf_keys(default_config(method)))
+    present = set(leaf_keys(OmegaConf.to_container(cfg)))
     for key in sorted(present - expected - {"env", "mentor.kwargs"}):
         raise ConfigError(f"unknown config key {key!r} for {method}; known: {sorted(expected)}", key)
     for key in sorted(expected - {"env"}):
@@ -282,10 +282,10 @@ def validate_baseline_config(cfg: DictConfig, method: str) -> None:
             raise ConfigError(f"{key} is missing from the config", key)
         problem = RULES[key](value)
         if problem is not None:
-            raise _fail(key, value, problem)
+            raise invalid_value(key, value, problem)
     if cfg.method != method:
-        raise _fail("method", cfg.method, f"this is the {method} recipe's config (method: {method})")
-    _check_env(cfg.env)
+        raise invalid_value("method", cfg.method, f"this is the {method} recipe's config (method: {method})")
+    check_env(cfg.env)
     _check_relations(cfg, METHODS[method])
 
 
@@ -297,7 +297,7 @@ def _check_relations(cfg: DictConfig, m: Method) -> None:
 
     scenes = len(scene_seeds(str(cfg.eval.split)))
     if cfg.eval.episodes > scenes:
-        raise _fail("eval.episodes", cfg.eval.episodes, f"must be <= {scenes}: one episode per scene of the "
+        raise invalid_value("eval.episodes", cfg.eval.episodes, f"must be <= {scenes}: one episode per scene of the "
                     f"{cfg.eval.split} split")
     if m.family in IMITATION_FAMILIES:
         imitation_config.check_relations(cfg, m.family)
@@ -305,17 +305,17 @@ def _check_relations(cfg: DictConfig, m: Method) -> None:
         return
     c = cfg.collector
     if c.frames_per_batch > c.total_frames:
-        raise _fail("collector.frames_per_batch", c.frames_per_batch,
+        raise invalid_value("collector.frames_per_batch", c.frames_per_batch,
                     f"must be <= collector.total_frames ({c.total_frames})")
     if m.family == "sac":
         if c.learning_starts >= c.total_frames:
-            raise _fail("collector.learning_starts", c.learning_starts,
+            raise invalid_value("collector.learning_starts", c.learning_starts,
                         f"must be < collector.total_frames ({c.total_frames}), or no update ever runs")
         if cfg.replay_buffer.batch_size > cfg.replay_buffer.size:
-            raise _fail("replay_buffer.batch_size", cfg.replay_buffer.batch_size,
+            raise invalid_value("replay_buffer.batch_size", cfg.replay_buffer.batch_size,
                         f"must be <= replay_buffer.size ({cfg.replay_buffer.size})")
     elif m.family in ("ppo", "cpo", "gail") and cfg.optim.minibatch_size > c.frames_per_batch:
-        raise _fail("optim.minibatch_size", cfg.optim.minibatch_size,
+        raise invalid_value("optim.minibatch_size", cfg.optim.minibatch_size,
                     f"must be <= collector.frames_per_batch ({c.frames_per_batch}): minibatches split each batch")
 
 

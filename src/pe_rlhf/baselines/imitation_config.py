@@ -22,14 +22,14 @@ from typing import Any
 from omegaconf import DictConfig
 
 from pe_rlhf.training.config import (
-    _choice,
-    _fail,
-    _hidden,
-    _int,
-    _mentor_name,
-    _number,
-    _optional,
-    _string,
+    rule_choice,
+    invalid_value,
+    rule_hidden,
+    rule_int,
+    rule_mentor_name,
+    rule_number,
+    rule_optional,
+    rule_string,
 )
 
 _DATA = {"path": None, "steps": 49_000, "mentor": "professional"}
@@ -137,14 +137,14 @@ def profiles(method: str) -> dict[str, dict[str, Any]]:
 def _demo_mentor(v) -> str | None:
     if v == "human":
         return "record a person's demonstrations first (pe-rlhf demo record --mentor human) and give data.path"
-    return _mentor_name(v)
+    return rule_mentor_name(v)
 
 
 def _hil_mentor(v) -> str | None:
     if v == "human":
         return ("a person in the loop needs the PE-RLHF recipe's real-time pacing; here: a simulated mentor "
                 "or a 'package.module:ClassName' import path")
-    return _mentor_name(v)
+    return rule_mentor_name(v)
 
 
 def _mapping(v) -> str | None:
@@ -152,15 +152,15 @@ def _mapping(v) -> str | None:
 
 
 RULES = {
-    "data.path": _optional(_string), "data.steps": _int(1), "data.mentor": _demo_mentor,
-    "mentor.name": _hil_mentor, "mentor.seed": _int(0), "mentor.kwargs": _mapping,
-    "optim.updates": _int(1), "optim.updates_per_iteration": _int(1), "optim.batch_size": _int(1),
-    "optim.pretrain_epochs": _int(0),
-    "loss.function": _choice("nll", "mse"), "loss.temperature": _number(0, lo_open=True),
-    "loss.min_q_weight": _number(0), "loss.bc_steps": _int(0), "loss.num_random": _int(1),
-    "discriminator.lr": _number(0, lo_open=True), "discriminator.updates_per_batch": _int(1),
-    "discriminator.batch_size": _int(1), "discriminator.hidden": _hidden, "discriminator.grad_penalty": _number(0),
-    "eval.every_updates": _int(0), "checkpoint.every_updates": _int(0),
+    "data.path": rule_optional(rule_string), "data.steps": rule_int(1), "data.mentor": _demo_mentor,
+    "mentor.name": _hil_mentor, "mentor.seed": rule_int(0), "mentor.kwargs": _mapping,
+    "optim.updates": rule_int(1), "optim.updates_per_iteration": rule_int(1), "optim.batch_size": rule_int(1),
+    "optim.pretrain_epochs": rule_int(0),
+    "loss.function": rule_choice("nll", "mse"), "loss.temperature": rule_number(0, lo_open=True),
+    "loss.min_q_weight": rule_number(0), "loss.bc_steps": rule_int(0), "loss.num_random": rule_int(1),
+    "discriminator.lr": rule_number(0, lo_open=True), "discriminator.updates_per_batch": rule_int(1),
+    "discriminator.batch_size": rule_int(1), "discriminator.hidden": rule_hidden, "discriminator.grad_penalty": rule_number(0),
+    "eval.every_updates": rule_int(0), "checkpoint.every_updates": rule_int(0),
 }
 # The other fields (optim.lr, optim.epochs, the PPO and SAC loss fields, collector.*, eval.*, ...) mean what
 # they mean for the RL baselines and use config.RULES.
@@ -168,20 +168,20 @@ RULES = {
 
 def check_relations(cfg: DictConfig, family: str) -> None:
     """The fields of an imitation config that bound each other (ConfigError naming the first bad one)."""
-    from pe_rlhf.training.config import _check_mentor_kwargs
+    from pe_rlhf.training.config import check_mentor_kwargs
 
     data_steps = int(cfg.data.steps)
     o = cfg.optim
     if family == "offline":
         if o.batch_size > data_steps:
-            raise _fail("optim.batch_size", o.batch_size, f"must be <= data.steps ({data_steps})")
+            raise invalid_value("optim.batch_size", o.batch_size, f"must be <= data.steps ({data_steps})")
         if o.updates_per_iteration > o.updates:
-            raise _fail("optim.updates_per_iteration", o.updates_per_iteration,
+            raise invalid_value("optim.updates_per_iteration", o.updates_per_iteration,
                         f"must be <= optim.updates ({o.updates})")
     if family == "gail" and cfg.discriminator.batch_size > data_steps:
-        raise _fail("discriminator.batch_size", cfg.discriminator.batch_size, f"must be <= data.steps ({data_steps})")
+        raise invalid_value("discriminator.batch_size", cfg.discriminator.batch_size, f"must be <= data.steps ({data_steps})")
     if family == "hil":
-        _check_mentor_kwargs(cfg.mentor)
+        check_mentor_kwargs(cfg.mentor)
         if o.batch_size > data_steps:
-            raise _fail("optim.batch_size", o.batch_size, f"must be <= data.steps ({data_steps}): the first "
+            raise invalid_value("optim.batch_size", o.batch_size, f"must be <= data.steps ({data_steps}): the first "
                         "round fits on the demonstrations")

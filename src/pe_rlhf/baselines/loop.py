@@ -39,7 +39,7 @@ from pe_rlhf.envs.torchrl_env import make_env
 from pe_rlhf.threads import FreeCores, torch_threads
 from pe_rlhf.training.builders import obs_dim
 from pe_rlhf.training.config import driving_config
-from pe_rlhf.training.trainer import EVAL_KEYS, _next_multiple, evaluate_actor
+from pe_rlhf.training.trainer import EVAL_KEYS, next_multiple, evaluate_actor
 
 ACTOR_FILE = "actor.pt"
 
@@ -142,8 +142,8 @@ class BaselineRun:
         collector = Collector(env, self.learner.actor, frames_per_batch=fpb, total_frames=-(-remaining // fpb) * fpb,
                               exploration_type=getattr(self.learner, "exploration_type", ExplorationType.RANDOM),
                               auto_register_policy_transforms=False, **self.learner.collector_kwargs(self.frames))
-        self.next_eval = _next_multiple(self.frames, int(self.cfg.eval.every_frames))
-        self.next_ckpt = _next_multiple(self.frames, int(self.cfg.checkpoint.every_frames))
+        self.next_eval = next_multiple(self.frames, int(self.cfg.eval.every_frames))
+        self.next_ckpt = next_multiple(self.frames, int(self.cfg.checkpoint.every_frames))
         self.bar = tqdm(total=self.total_frames, initial=self.frames, desc=self.method.name, unit="step")
         try:
             with torch_threads(1):  # acting: tiny matmuls, faster on one thread (pe_rlhf.threads)
@@ -173,7 +173,7 @@ class BaselineRun:
         self.seconds["update"] += time.time() - t_update
         log.update(batch_log(self.tracker, episodes))
         if self.frames >= self.next_eval:
-            self.next_eval = _next_multiple(self.frames, int(cfg.eval.every_frames))
+            self.next_eval = next_multiple(self.frames, int(cfg.eval.every_frames))
             log.update(self.evaluate_columns())
         log.update({"env_steps": self.frames, "wall_time": self.wall_time(),
                     **{f"time/{k}_seconds": v for k, v in self.seconds.items() if k != "earlier_sessions"}})
@@ -187,7 +187,7 @@ class BaselineRun:
         self.bar.set_postfix({k: (round(v, 2) if isinstance(v, float) else v) for k, v in postfix.items()
                               if v is not None}, refresh=False)
         if self.checkpoint_dir is not None and self.frames >= self.next_ckpt:
-            self.next_ckpt = _next_multiple(self.frames, int(cfg.checkpoint.every_frames))
+            self.next_ckpt = next_multiple(self.frames, int(cfg.checkpoint.every_frames))
             self.save()
 
     def evaluate(self, episodes: int) -> dict:

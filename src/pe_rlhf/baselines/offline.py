@@ -37,7 +37,7 @@ from pe_rlhf.threads import torch_threads
 from pe_rlhf.training.builders import obs_dim
 from pe_rlhf.training.config import driving_config
 from pe_rlhf.training.steps import update
-from pe_rlhf.training.trainer import EVAL_KEYS, _next_multiple, evaluate_actor
+from pe_rlhf.training.trainer import EVAL_KEYS, next_multiple, evaluate_actor
 
 ACTOR_FILE = "actor.pt"
 
@@ -162,8 +162,8 @@ class OfflineRun:
     def train(self) -> None:
         self.load_data()
         every = int(self.cfg.optim.updates_per_iteration)
-        self.next_eval = _next_multiple(self.updates, int(self.cfg.eval.every_updates))
-        self.next_ckpt = _next_multiple(self.updates, int(self.cfg.checkpoint.every_updates))
+        self.next_eval = next_multiple(self.updates, int(self.cfg.eval.every_updates))
+        self.next_ckpt = next_multiple(self.updates, int(self.cfg.checkpoint.every_updates))
         bar = tqdm(total=self.total_updates, initial=self.updates, desc=self.method.name, unit="update")
         try:
             while self.updates < self.total_updates:
@@ -187,7 +187,7 @@ class OfflineRun:
     def log_iteration(self, log: dict[str, float]) -> None:
         cfg = self.cfg
         if self.updates >= self.next_eval:
-            self.next_eval = _next_multiple(self.updates, int(cfg.eval.every_updates))
+            self.next_eval = next_multiple(self.updates, int(cfg.eval.every_updates))
             summary = self.evaluate(int(cfg.eval.episodes))
             log.update({f"eval/{k}_{s}": summary[k][s] for k in EVAL_KEYS for s in ("mean", "std")})
         log.update({"env_steps": 0, "updates": self.updates, "wall_time": self.wall_time(),
@@ -198,7 +198,7 @@ class OfflineRun:
         if last or self.iterations % int(cfg.logger.log_every) == 0 or any(k.startswith("eval/") for k in log):
             self.logger.log(self.updates, log)
         if self.checkpoint_dir is not None and self.updates >= self.next_ckpt:
-            self.next_ckpt = _next_multiple(self.updates, int(cfg.checkpoint.every_updates))
+            self.next_ckpt = next_multiple(self.updates, int(cfg.checkpoint.every_updates))
             self.save()
 
     def evaluate(self, episodes: int) -> dict:

@@ -23,10 +23,10 @@ from pe_rlhf.training.plots import (
     LOSS_PREFIX,
     TESTING_PANEL,
     TESTING_PNG,
-    _mark_missing,
-    _save,
-    _series,
-    _testing_figure,
+    mark_missing,
+    save_figure,
+    metric_series,
+    testing_figure,
 )
 
 LEARNING_PNG = "learning_curves.png"
@@ -55,12 +55,12 @@ def plot_baseline_curves(csv_path: str | os.PathLike, out_dir: str | os.PathLike
         ax.set_title(title, fontsize=10)
         drawn = 0
         for column in cols:
-            x, y = _series(rows, column)
+            x, y = metric_series(rows, column)
             if x.size:
                 ax.plot(x, y, lw=1.4, marker="o" if x.size < 30 else None, ms=3, label=column.split("/", 1)[1])
                 drawn += 1
         if not drawn:
-            _mark_missing(ax, " | ".join(cols))
+            mark_missing(ax, " | ".join(cols))
             continue
         if cols[0] == "train/success_rate_total":
             ax.set_ylim(-0.05, 1.05)
@@ -71,16 +71,16 @@ def plot_baseline_curves(csv_path: str | os.PathLike, out_dir: str | os.PathLike
     ax.set_title("(f) losses", fontsize=10)
     losses = [c for c in columns if c.startswith(LOSS_PREFIX)]
     for column in losses:
-        x, y = _series(rows, column)
+        x, y = metric_series(rows, column)
         if x.size:
             ax.plot(x, y, lw=1.2, label=column[len(LOSS_PREFIX):])
     if losses:
         ax.set_yscale("symlog", linthresh=1e-2)  # losses differ by orders of magnitude and sign
         ax.legend(fontsize=8)
     else:
-        _mark_missing(ax, f"{LOSS_PREFIX}*")
-    written = {"learning": _save(fig, axes, out_dir / LEARNING_PNG, f"Training{unit}")}
-    if any(_series(rows, f"{EVAL_PREFIX}{m}_mean")[0].size for m, _ in TESTING_PANEL):
-        fig, axes = _testing_figure(rows, None, "baseline")
-        written["testing"] = _save(fig, axes, out_dir / TESTING_PNG, f"Testing (test split, mean ± std){unit}")
+        mark_missing(ax, f"{LOSS_PREFIX}*")
+    written = {"learning": save_figure(fig, axes, out_dir / LEARNING_PNG, f"Training{unit}")}
+    if any(metric_series(rows, f"{EVAL_PREFIX}{m}_mean")[0].size for m, _ in TESTING_PANEL):
+        fig, axes = testing_figure(rows, None, "baseline")
+        written["testing"] = save_figure(fig, axes, out_dir / TESTING_PNG, f"Testing (test split, mean ± std){unit}")
     return written

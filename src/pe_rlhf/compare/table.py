@@ -33,9 +33,9 @@ from pe_rlhf.sweeps.summary import (
     METRICS,
     NAN,
     Metric,
-    _last_csv_row,
-    _logged,
-    _write_csv,
+    last_csv_row,
+    logged_metrics,
+    write_csv,
     metric_values,
 )
 
@@ -75,7 +75,7 @@ def _test(key: str, label: str) -> Metric:
 
 
 COLUMNS: dict[str, Metric] = {
-    "takeover_data_usage": Metric("takeover data", ".2f", _logged("train/takeover_data_usage", "takeover_data_usage",
+    "takeover_data_usage": Metric("takeover data", ".2f", logged_metrics("train/takeover_data_usage", "takeover_data_usage",
                                                                   "mentor_data_share")),
     "total_data": Metric("total data", ".0f", _total_data),
     "train_minutes": Metric("training time (min)", ".1f", _minutes),
@@ -95,7 +95,7 @@ def seed_values(row: Row) -> list[dict[str, float]]:
     values = []
     for source in row.sources:
         csv_path = source.metrics_csv if row.kind == TRAINED else None
-        last = _last_csv_row(csv_path) if csv_path is not None else {}
+        last = last_csv_row(csv_path) if csv_path is not None else {}
         seed = metric_values(source.final, last, COLUMNS)
         if row.kind != TRAINED:
             seed.update({k: NAN for k in TRAINING_COLUMNS})
@@ -158,7 +158,7 @@ def write_table(out: str | Path, rows: list[Row], title: str = "Table 1",
     table = aggregate_rows(rows)
     stats = ("mean", "std", "lo", "hi")
     header = ["method", "kind", "seeds", *(f"{k}_{s}" for k in COLUMNS for s in stats), "sources"]
-    _write_csv(out / TABLE_CSV, header,
+    write_csv(out / TABLE_CSV, header,
                [[r["label"], r["kind"], r["seeds"], *(r[k][s] for k in COLUMNS for s in stats),
                  ";".join(r["sources"])] for r in table])
     md = markdown_table(table)

@@ -109,7 +109,7 @@ def cpo_direction(g_dir: torch.Tensor, b_dir: torch.Tensor, q: float, r: float, 
     return CPODirection((g_dir - nu * b_dir) / lam, FEASIBLE_START if c < 0 else INFEASIBLE_START, lam, nu)
 
 
-def _base_normal(dist) -> Normal:
+def base_normal(dist) -> Normal:
     """The Gaussian under a (Tanh)Normal / Independent wrapper: KL is invariant under the tanh bijection."""
     while not isinstance(dist, Normal):
         dist = dist.base_dist
@@ -254,7 +254,7 @@ class CPOLoss(LossModule):
         with self.actor_network_params.to_module(self.actor_network, preserve_module_state=False):
             dist = self.actor_network.get_dist(tensordict.select(*self.actor_network.in_keys, strict=False))
         log_prob = dist.log_prob(action)
-        return _base_normal(dist), log_prob.sum(-1) if log_prob.shape == action.shape else log_prob
+        return base_normal(dist), log_prob.sum(-1) if log_prob.shape == action.shape else log_prob
 
     def _surrogates(self, td: TensorDictBase, old: tuple[Normal, torch.Tensor]) -> tuple[torch.Tensor, ...]:
         """``(L_r, L_c, mean KL(old || current))`` at the current actor parameters."""

@@ -41,7 +41,7 @@ def _test(key: str) -> Callable[[dict, dict], float]:
     return lambda final, last: float((final.get(key) or {}).get("mean", NAN))
 
 
-def _logged(column: str, *training_keys: str) -> Callable[[dict, dict], float]:
+def logged_metrics(column: str, *training_keys: str) -> Callable[[dict, dict], float]:
     """``column`` of the last metrics row, else the first of ``training_keys`` in ``final["training"]``."""
     def read(final: dict, last: dict) -> float:
         if column in last:
@@ -60,9 +60,9 @@ METRICS: dict[str, Metric] = {
     "travel_velocity": Metric("test velocity km/h", ".1f", _test("travel_velocity")),
     "overtake_count": Metric("test overtakes", ".2f", _test("overtake_count")),
     "train_safety_violations": Metric("train safety viol.", ".1f",
-                                      _logged("train/safety_violations_total", "safety_violations")),
-    "takeover_data_usage": Metric("takeover data usage", ".2f", _logged("train/takeover_data_usage")),
-    "value_takeover_rate": Metric("value-takeover rate", ".2f", _logged("train/value_takeover_rate")),
+                                      logged_metrics("train/safety_violations_total", "safety_violations")),
+    "takeover_data_usage": Metric("takeover data usage", ".2f", logged_metrics("train/takeover_data_usage")),
+    "value_takeover_rate": Metric("value-takeover rate", ".2f", logged_metrics("train/value_takeover_rate")),
     "train_wall_minutes": Metric("train wall min", ".1f",
                                  lambda final, last: float(last["wall_time"]) / 60 if "wall_time" in last else NAN),
 }
@@ -70,7 +70,7 @@ DEFAULT_METRICS = ("success_rate", "safety_violation", "train_safety_violations"
                    "value_takeover_rate")
 
 
-def _last_csv_row(path: Path) -> dict[str, float]:
+def last_csv_row(path: Path) -> dict[str, float]:
     if not path.is_file():
         return {}
     from pe_rlhf.training.metrics_logger import read_metrics_csv
@@ -97,7 +97,7 @@ def read_cell(directory: str | Path, metrics: dict[str, Metric] = METRICS) -> di
     if not (directory / FINAL_EVAL).is_file():
         return {}
     final = json.loads((directory / FINAL_EVAL).read_text())
-    return metric_values(final, _last_csv_row(directory / "metrics.csv"), metrics)
+    return metric_values(final, last_csv_row(directory / "metrics.csv"), metrics)
 
 
 def cell_rows(out: str | Path, cells: Sequence[Cell]) -> list[dict[str, Any]]:
@@ -136,7 +136,7 @@ def aggregate(rows: Sequence[dict[str, Any]], metrics: Sequence[str]) -> list[di
     return table
 
 
-def _write_csv(path: Path, header: list[str], rows: list[list[Any]]) -> None:
+def write_csv(path: Path, header: list[str], rows: list[list[Any]]) -> None:
     with open(path, "w", newline="") as f:
         writer = csv.writer(f)
         writer.writerow(header)
@@ -162,11 +162,11 @@ def write_summary(out: str | Path, cells: Sequence[Cell], metrics: Sequence[str]
     out.mkdir(parents=True, exist_ok=True)
     rows = cell_rows(out, cells)
     keys = ["cell", "method", "mentor", "parameter", "seed", "status", *METRICS]
-    _write_csv(out / CELLS_CSV, keys, [[r[k] for k in keys] for r in rows])
+    write_csv(out / CELLS_CSV, keys, [[r[k] for k in keys] for r in rows])
     table = aggregate(rows, metrics)
     header = ["method", "mentor", "parameter", "seeds", "cells"]
     stats = ("mean", "std", "lo", "hi")
-    _write_csv(out / SUMMARY_CSV, header + [f"{m}_{s}" for m in metrics for s in stats],
+    write_csv(out / SUMMARY_CSV, header + [f"{m}_{s}" for m in metrics for s in stats],
                [[r[k] for k in header] + [r[m][s] for m in metrics for s in stats] for r in table])
     finished = sum(r["status"] == "finished" for r in rows)
     text = [f"# Sweep {title}", ""] + ([description, ""] if description else [])

@@ -131,7 +131,7 @@ class ConfigError(ValueError):
         self.field = field
 
 
-def _fail(field: str, value: Any, allowed: str) -> ConfigError:
+def invalid_value(field: str, value: Any, allowed: str) -> ConfigError:
     if isinstance(value, (DictConfig, ListConfig)):
         value = OmegaConf.to_container(value)
     return ConfigError(f"{field}={value!r} is invalid: {allowed}", field)
@@ -157,7 +157,7 @@ def default_config_path() -> Path | None:
     return None
 
 
-def _check_key(cfg: DictConfig, key: str, origin: str) -> None:
+def check_key(cfg: DictConfig, key: str, origin: str) -> None:
     """Fail unless ``key`` (dotted) exists in ``cfg`` or lies inside an open group."""
     node: Any = cfg
     parts = key.split(".")
@@ -173,29 +173,29 @@ def _check_key(cfg: DictConfig, key: str, origin: str) -> None:
         node = node[part]
 
 
-def _leaf_keys(values: Mapping, prefix: str = "") -> Iterable[str]:
+def leaf_keys(values: Mapping, prefix: str = "") -> Iterable[str]:
     for key, value in values.items():
         path = f"{prefix}{key}"
         if isinstance(value, Mapping) and value and path not in OPEN_GROUPS:
-            yield from _leaf_keys(value, path + ".")
+            yield from leaf_keys(value, path + ".")
         else:
             yield path
 
 
-def _merge(cfg: DictConfig, values: Mapping | DictConfig, origin: str) -> None:
+def merge_values(cfg: DictConfig, values: Mapping | DictConfig, origin: str) -> None:
     if isinstance(values, DictConfig):
         values = OmegaConf.to_container(values)
     if not isinstance(values, Mapping):
         raise ConfigError(f"{origin} must be a mapping of config groups, got {type(values).__name__}")
-    for key in _leaf_keys(values):
-        _check_key(cfg, key, origin)
+    for key in leaf_keys(values):
+        check_key(cfg, key, origin)
     try:
         cfg.merge_with(values)
     except OmegaConfBaseException as e:
         raise ConfigError(f"cannot apply {origin}: {e}") from e
 
 
-def _parse_overrides(overrides: Iterable[str]) -> list[tuple[str, str]]:
+def parse_overrides(overrides: Iterable[str]) -> list[tuple[str, str]]:
     if isinstance(overrides, str):  # a lone "a=b" would otherwise be iterated character by character
         overrides = [overrides]
     parsed = []
@@ -225,17 +225,17 @@ def load_config(path: str | Path | None = None, overrides: Iterable[str] = (), *
     if path is not None:
         if not Path(path).is_file():
             raise ConfigError(f"config file {str(path)!r} not found")
-        _merge(cfg, OmegaConf.load(path), f"config file {path}")
-    parsed = _parse_overrides(overrides)
+        merge_values(cfg, OmegaConf.load(path), f"config file {path}")
+    parsed = parse_overrides(overrides)
     profile = next((v.strip() for k, v in reversed(parsed) if k == "profile"), cfg.profile)
     if profile not in PROFILES:
-        raise _fail("profile", profile, f"allowed: {list(PROFILES)}")
+        raise invalid_value("profile", profile, f"allowed: {list(PROFILES)}")
     if apply_profile:
-        _merge(cfg, PROFILES[profile], f"profile {profile!r}")
+        merge_values(cfg, PROFILES[profile], f"profile {profile!r}")
     cfg.profile = profile
     given = {key for key, value in HUMAN_DEFAULTS.items() if OmegaConf.select(cfg, key) != _default(key)}
     for key, value in parsed:
-        _check_key(cfg, key, "command-line override")
+        check_key(cfg, key, "command-line override")
         try:
             cfg.merge_with(OmegaConf.from_dotlist([f"{key}={value}"]))
         except OmegaConfBaseException as e:
@@ -270,14 +270,14 @@ def _apply_human_defaults(cfg: DictConfig, given: set[str]) -> None:
 Rule = Callable[[Any], str | None]  # value -> None if fine, else what is allowed
 
 
-def _int(minimum: int) -> Rule:
+def rule_int(minimum: int) -> Rule:
     def rule(v):
         ok = isinstance(v, int) and not isinstance(v, bool) and v >= minimum
         return None if ok else f"must be an integer >= {minimum}"
     return rule
 
 
-def _number(lo: float | None = None, hi: float | None = None, lo_open: bool = False,
+def rule_number(lo: float | None = None, hi: float | None = None, lo_open: bool = False,
             hi_open: bool = False, meaning: str = "") -> Rule:
     """A finite number in the bounds; ``meaning`` (what the values do) is appended to the message."""
     if lo is not None and hi is not None:
@@ -299,33 +299,33 @@ def _number(lo: float | None = None, hi: float | None = None, lo_open: bool = Fa
     return rule
 
 
-def _optional(rule: Rule) -> Rule:
+def rule_optional(rule: Rule) -> Rule:
     return lambda v: None if v is None else (None if rule(v) is None else f"{rule(v)}, or null")
 
 
-def _bool(v) -> str | None:
+def rule_bool(v) -> str | None:
     return None if isinstance(v, bool) else "must be true or false"
 
 
-def _choice(*options: str) -> Rule:
+def rule_choice(*options: str) -> Rule:
     return lambda v: None if v in options else f"allowed: {list(options)}"
 
 
-def _string(v) -> str | None:
+def rule_string(v) -> str | None:
     return None if isinstance(v, str) and v.strip() else "must be a non-empty string"
 
 
-def _hidden(v) -> str | None:
+def rule_hidden(v) -> str | None:
     ok = isinstance(v, (list, tuple, ListConfig)) and len(v) > 0 and all(
         isinstance(h, int) and not isinstance(h, bool) and h >= 1 for h in v)
     return None if ok else "must be a non-empty list of positive integers (layer widths), e.g. [256, 256]"
 
 
-def _target_entropy(v) -> str | None:
-    return None if v == "auto" or _number()(v) is None else "must be 'auto' (= -dim(action)) or a finite number"
+def rule_target_entropy(v) -> str | None:
+    return None if v == "auto" or rule_number()(v) is None else "must be 'auto' (= -dim(action)) or a finite number"
 
 
-def _mentor_name(v) -> str | None:
+def rule_mentor_name(v) -> str | None:
     from pe_rlhf.mentors.registry import MENTOR_NAMES
 
     if isinstance(v, str) and (v in MENTOR_NAMES or _IMPORT_PATH.match(v)):
@@ -360,43 +360,43 @@ EPSILON_SELECT_MEANING = ("any sign, in the value source's units: > 0 the mentor
                           "-epsilon_select above it")
 
 RULES: dict[str, Rule] = {
-    "seed": _int(0),
-    "profile": _choice(*PROFILES),
-    "mentor.name": _mentor_name, "mentor.seed": _int(0),
-    **{f"physics.{k}": _bool for k in ("enabled", "see_obstacles", "stop_for_obstacles", "use_idm", "use_mobil")},
-    "selector.enabled": _bool, "selector.epsilon_select": _optional(_number(meaning=EPSILON_SELECT_MEANING)),
-    "selector.variance_threshold": _optional(_number(0)), "selector.num_members": _int(1),
-    "selector.hidden": _hidden, "selector.warmup_fit_steps": _int(0), "selector.refresh_every": _int(0),
-    "selector.refresh_steps": _int(0), "selector.fit_loss": _choice(*FIT_LOSSES),
-    "selector.refresh_data": _choice(*REFRESH_DATA),
-    "selector.value": _value_source, "selector.switch_margin": _optional(_number(0)),
+    "seed": rule_int(0),
+    "profile": rule_choice(*PROFILES),
+    "mentor.name": rule_mentor_name, "mentor.seed": rule_int(0),
+    **{f"physics.{k}": rule_bool for k in ("enabled", "see_obstacles", "stop_for_obstacles", "use_idm", "use_mobil")},
+    "selector.enabled": rule_bool, "selector.epsilon_select": rule_optional(rule_number(meaning=EPSILON_SELECT_MEANING)),
+    "selector.variance_threshold": rule_optional(rule_number(0)), "selector.num_members": rule_int(1),
+    "selector.hidden": rule_hidden, "selector.warmup_fit_steps": rule_int(0), "selector.refresh_every": rule_int(0),
+    "selector.refresh_steps": rule_int(0), "selector.fit_loss": rule_choice(*FIT_LOSSES),
+    "selector.refresh_data": rule_choice(*REFRESH_DATA),
+    "selector.value": _value_source, "selector.switch_margin": rule_optional(rule_number(0)),
     "selector.warmup_selection": lambda v: None if v == "auto" or isinstance(v, bool) else "allowed: auto, true, false",
-    "selector.target_noise": _number(0), "selector.tau": _number(0, 1, lo_open=True), "selector.lr": _number(0, lo_open=True),
-    "selector.batch_size": _int(1),
-    "collector.total_frames": _int(1), "collector.frames_per_batch": _int(1),
-    "collector.warmup_steps": _int(0), "collector.warmup_policy": _optional(_string), "collector.warmup_gap": _bool, "collector.exploration": _choice("random", "deterministic"), "collector.learning_starts": _int(0),
-    "collector.backend": _backend, "collector.num_workers": _int(1), "collector.realtime_hz": _number(0),
-    "replay_buffer.size": _int(1), "replay_buffer.batch_size": _int(1),
-    "optim.lr": _number(0, lo_open=True), "optim.updates_per_batch": _int(1),
-    "optim.max_grad_norm": _optional(_number(0, lo_open=True)), "optim.async_updates": _bool,
+    "selector.target_noise": rule_number(0), "selector.tau": rule_number(0, 1, lo_open=True), "selector.lr": rule_number(0, lo_open=True),
+    "selector.batch_size": rule_int(1),
+    "collector.total_frames": rule_int(1), "collector.frames_per_batch": rule_int(1),
+    "collector.warmup_steps": rule_int(0), "collector.warmup_policy": rule_optional(rule_string), "collector.warmup_gap": rule_bool, "collector.exploration": rule_choice("random", "deterministic"), "collector.learning_starts": rule_int(0),
+    "collector.backend": _backend, "collector.num_workers": rule_int(1), "collector.realtime_hz": rule_number(0),
+    "replay_buffer.size": rule_int(1), "replay_buffer.batch_size": rule_int(1),
+    "optim.lr": rule_number(0, lo_open=True), "optim.updates_per_batch": rule_int(1),
+    "optim.max_grad_norm": rule_optional(rule_number(0, lo_open=True)), "optim.async_updates": rule_bool,
     "optim.device": lambda v: None if isinstance(v, str) and re.fullmatch(r"auto|cpu|cuda(:\d+)?", v)
     else "allowed: auto, cpu, cuda, cuda:N",
     "optim.threads": lambda v: None if v == "auto" or (isinstance(v, int) and not isinstance(v, bool) and v >= 1)
     else "allowed: auto, or an int >= 1",
-    "optim.precision": _choice(*PRECISIONS),
-    "loss.gamma": _number(0, 1), "loss.tau": _number(0, 1, lo_open=True), "loss.gap_coef": _number(0), "loss.gap_margin": _optional(_number(0)),
-    "loss.psi": _number(0), "loss.intervention_weight": _number(0), "loss.cosine_cost": _bool,
-    "loss.intervention_critic_action": _choice(*INTERVENTION_CRITIC_ACTIONS),
-    "loss.num_qvalue_nets": _int(1), "loss.num_intervention_qvalue_nets": _int(1),
-    "loss.target_entropy": _target_entropy, "loss.alpha_init": _number(0, lo_open=True), "loss.hidden": _hidden,
-    "loss.disturbance_weight": _number(0), "loss.num_disturbance_qvalue_nets": _int(1),
-    "loss.failure_target": _choice(*FAILURE_TARGETS),
-    "disturbance.enabled": _bool, **{f"disturbance.{k}": _number(0, lo_open=True)
+    "optim.precision": rule_choice(*PRECISIONS),
+    "loss.gamma": rule_number(0, 1), "loss.tau": rule_number(0, 1, lo_open=True), "loss.gap_coef": rule_number(0), "loss.gap_margin": rule_optional(rule_number(0)),
+    "loss.psi": rule_number(0), "loss.intervention_weight": rule_number(0), "loss.cosine_cost": rule_bool,
+    "loss.intervention_critic_action": rule_choice(*INTERVENTION_CRITIC_ACTIONS),
+    "loss.num_qvalue_nets": rule_int(1), "loss.num_intervention_qvalue_nets": rule_int(1),
+    "loss.target_entropy": rule_target_entropy, "loss.alpha_init": rule_number(0, lo_open=True), "loss.hidden": rule_hidden,
+    "loss.disturbance_weight": rule_number(0), "loss.num_disturbance_qvalue_nets": rule_int(1),
+    "loss.failure_target": rule_choice(*FAILURE_TARGETS),
+    "disturbance.enabled": rule_bool, **{f"disturbance.{k}": rule_number(0, lo_open=True)
                                       for k in ("threshold", "horizon", "follower_range")},
-    "logger.out_dir": _optional(_string), **{f"logger.{k}": _bool for k in ("csv", "wandb", "tensorboard", "mlflow")},
-    "logger.wandb_mode": _choice(*WANDB_MODES), "logger.wandb_project": _string, "logger.log_every": _int(1),
-    "eval.every_frames": _int(0), "eval.episodes": _int(1), "eval.split": _choice(*SPLITS), "eval.video": _bool,
-    "checkpoint.every_frames": _int(0), "checkpoint.keep": _int(1),
+    "logger.out_dir": rule_optional(rule_string), **{f"logger.{k}": rule_bool for k in ("csv", "wandb", "tensorboard", "mlflow")},
+    "logger.wandb_mode": rule_choice(*WANDB_MODES), "logger.wandb_project": rule_string, "logger.log_every": rule_int(1),
+    "eval.every_frames": rule_int(0), "eval.episodes": rule_int(1), "eval.split": rule_choice(*SPLITS), "eval.video": rule_bool,
+    "checkpoint.every_frames": rule_int(0), "checkpoint.keep": rule_int(1),
 }
 
 
@@ -424,7 +424,7 @@ def reference_table() -> str:
 def validate_config(cfg: DictConfig) -> None:
     """Check every field (:data:`RULES`), the env (as a DrivingConfig), the mentor's kwargs, and the
     fields that constrain each other; raise :class:`ConfigError` at the first problem."""
-    for key in _leaf_keys(OmegaConf.to_container(cfg)):
+    for key in leaf_keys(OmegaConf.to_container(cfg)):
         if key not in RULES and key not in OPEN_GROUPS:
             raise ConfigError(f"unknown config key {key!r}; known: {sorted(RULES) + list(OPEN_GROUPS)}", key)
     for field, rule in RULES.items():
@@ -433,9 +433,9 @@ def validate_config(cfg: DictConfig) -> None:
             raise ConfigError(f"{field} is missing from the config", field)
         problem = rule(value)
         if problem is not None:
-            raise _fail(field, value, problem)
-    _check_env(cfg.env)
-    _check_mentor_kwargs(cfg.mentor)
+            raise invalid_value(field, value, problem)
+    check_env(cfg.env)
+    check_mentor_kwargs(cfg.mentor)
     _check_relations(cfg)
 
 
@@ -449,70 +449,70 @@ def _check_relations(cfg: DictConfig) -> None:
              ("replay_buffer.batch_size", cfg.replay_buffer.batch_size, "replay_buffer.size", cfg.replay_buffer.size))
     for field, value, bound_field, bound in pairs:
         if value > bound:
-            raise _fail(field, value, f"must be <= {bound_field} ({bound})")
+            raise invalid_value(field, value, f"must be <= {bound_field} ({bound})")
     if c.learning_starts >= c.total_frames:
-        raise _fail("collector.learning_starts", c.learning_starts,
+        raise invalid_value("collector.learning_starts", c.learning_starts,
                     f"must be < collector.total_frames ({c.total_frames}), or no update ever runs")
     if c.backend == "single" and c.num_workers != 1:
-        raise _fail("collector.num_workers", c.num_workers,
+        raise invalid_value("collector.num_workers", c.num_workers,
                     "the single backend runs one env: use 1, or collector.backend=multisync|multiasync")
     if cfg.mentor.name == "human" and c.backend != "single":
-        raise _fail("collector.backend", c.backend, "a human mentor drives one env in this process (one person, "
+        raise invalid_value("collector.backend", c.backend, "a human mentor drives one env in this process (one person, "
                     "one window): use single")
     if c.backend in ("multisync", "ray") and c.frames_per_batch % c.num_workers:
-        raise _fail("collector.frames_per_batch", c.frames_per_batch,
+        raise invalid_value("collector.frames_per_batch", c.frames_per_batch,
                     f"must be divisible by collector.num_workers ({c.num_workers}): with collector.backend="
                     f"{c.backend} each worker collects an equal share of every batch")
     if c.backend != "single":
         for field, value in (("collector.realtime_hz", c.realtime_hz),
                              ("optim.async_updates", cfg.optim.async_updates)):
             if value:
-                raise _fail(field, value, f"needs collector.backend=single (got {c.backend}): the pacing and the "
+                raise invalid_value(field, value, f"needs collector.backend=single (got {c.backend}): the pacing and the "
                             "background learner drive one env in this process; use 0 / false")
     if c.warmup_policy is not None and c.warmup_steps < 1:
-        raise _fail("collector.warmup_policy", c.warmup_policy,
+        raise invalid_value("collector.warmup_policy", c.warmup_policy,
                     "drives the warm-up, but collector.warmup_steps is 0: give the warm-up steps, or null")
     method_name(cfg)  # physics/selector combination
     if cfg.selector.enabled and cfg.selector.warmup_selection is True:
         from pe_rlhf.training.value_expert import parse_value_source
 
         if parse_value_source(cfg.selector.value)[0] == "warmup":
-            raise _fail("selector.warmup_selection", True, "needs a value source that is not fitted on the warm-up "
+            raise invalid_value("selector.warmup_selection", True, "needs a value source that is not fitted on the warm-up "
                         "(selector.value=forecast or expert): use auto or false")
         if c.warmup_policy is not None:
-            raise _fail("selector.warmup_selection", True, "judges the mentor's warm-up, but collector.warmup_policy "
+            raise invalid_value("selector.warmup_selection", True, "judges the mentor's warm-up, but collector.warmup_policy "
                         "drives it: use auto or false")
     if cfg.selector.enabled:
         for field in ("collector.warmup_steps", "selector.warmup_fit_steps"):
             if OmegaConf.select(cfg, field) < 1:
-                raise _fail(field, OmegaConf.select(cfg, field),
+                raise invalid_value(field, OmegaConf.select(cfg, field),
                             "must be >= 1 with selector.enabled (the Q-ensemble is fitted on warm-up data)")
 
 
 def _env_type_problem(default: Any, value: Any) -> str | None:
     """What DrivingConfig would choke on with a TypeError (or accept wrongly): judged by the default's type."""
     if isinstance(default, bool):
-        return _bool(value)
+        return rule_bool(value)
     if isinstance(default, int):
         return None if isinstance(value, int) and not isinstance(value, bool) else "must be an integer"
     if isinstance(default, float):
-        return None if _number()(value) is None else "must be a finite number"
+        return None if rule_number()(value) is None else "must be a finite number"
     if isinstance(default, tuple):
         ok = isinstance(value, (list, tuple)) and all(isinstance(x, str) for x in value)
         return None if ok else "must be a list of names"
     return None
 
 
-def _check_env(env: DictConfig) -> None:
+def check_env(env: DictConfig) -> None:
     values = OmegaConf.to_container(env, resolve=True)
     defaults = DrivingConfig()
     known = [f.name for f in dataclasses.fields(DrivingConfig)]
     for key, value in values.items():
         if key not in known:
-            raise _fail(f"env.{key}", value, f"unknown DrivingConfig field; known: {known}")
+            raise invalid_value(f"env.{key}", value, f"unknown DrivingConfig field; known: {known}")
         problem = _env_type_problem(getattr(defaults, key), value)
         if problem:
-            raise _fail(f"env.{key}", value, problem)
+            raise invalid_value(f"env.{key}", value, problem)
     try:
         DrivingConfig.from_dict(values)
     except (ValueError, TypeError) as e:
@@ -523,7 +523,7 @@ def _check_env(env: DictConfig) -> None:
         raise ConfigError(f"env.{name}={shown} is invalid: {allowed}", f"env.{name}") from e
 
 
-def _check_mentor_kwargs(mentor: DictConfig) -> None:
+def check_mentor_kwargs(mentor: DictConfig) -> None:
     if ":" in mentor.name:
         return  # a user's class: its constructor arguments are checked when it is built
     if mentor.name == "human":
@@ -534,7 +534,7 @@ def _check_mentor_kwargs(mentor: DictConfig) -> None:
 
         for key in mentor.kwargs:
             if key not in COLLAPSING_KWARGS:
-                raise _fail(f"mentor.kwargs.{key}", mentor.kwargs[key],
+                raise invalid_value(f"mentor.kwargs.{key}", mentor.kwargs[key],
                             f"unknown CollapsingMentor argument; known: {list(COLLAPSING_KWARGS)}")
         return
     from pe_rlhf.mentors.simulated import SkillProfile
@@ -542,28 +542,28 @@ def _check_mentor_kwargs(mentor: DictConfig) -> None:
     known = sorted(f.name for f in dataclasses.fields(SkillProfile))
     for key in mentor.kwargs:
         if key not in known:
-            raise _fail(f"mentor.kwargs.{key}", mentor.kwargs[key],
+            raise invalid_value(f"mentor.kwargs.{key}", mentor.kwargs[key],
                         f"unknown SkillProfile field for mentor {mentor.name!r}; known: {known}")
 
 
 def _window_size(v) -> str | None:
-    ok = isinstance(v, (list, tuple, ListConfig)) and len(v) == 2 and all(_int(1)(x) is None for x in v)
+    ok = isinstance(v, (list, tuple, ListConfig)) and len(v) == 2 and all(rule_int(1)(x) is None for x in v)
     return None if ok else "must be [width, height] in pixels"
 
 
 # HumanMentor arguments a YAML value can give (mapping / input_state are objects, for code only).
-HUMAN_KWARGS: dict[str, Rule] = {"fps": _number(0), "scaling": _number(0, lo_open=True), "title": _string,
-                                 "size": _window_size, "on_disconnect": _choice("agent", "pause")}
+HUMAN_KWARGS: dict[str, Rule] = {"fps": rule_number(0), "scaling": rule_number(0, lo_open=True), "title": rule_string,
+                                 "size": _window_size, "on_disconnect": rule_choice("agent", "pause")}
 
 
 def _check_human_kwargs(kwargs: DictConfig) -> None:
     for key in kwargs:
         if key not in HUMAN_KWARGS:
-            raise _fail(f"mentor.kwargs.{key}", kwargs[key],
+            raise invalid_value(f"mentor.kwargs.{key}", kwargs[key],
                         f"unknown HumanMentor argument; known: {sorted(HUMAN_KWARGS)}")
         problem = HUMAN_KWARGS[key](kwargs[key])
         if problem is not None:
-            raise _fail(f"mentor.kwargs.{key}", kwargs[key], problem)
+            raise invalid_value(f"mentor.kwargs.{key}", kwargs[key], problem)
 
 
 # --------------------------------------------------------------------------- views
@@ -584,9 +584,9 @@ def method_name(cfg: DictConfig) -> str:
     if not physics and not selector:
         return "HAIM-DRL" if disturbance else "HACO"
     if selector:
-        raise _fail("selector.enabled", True, "needs physics.enabled=true (PE-RLHF chooses between the "
+        raise invalid_value("selector.enabled", True, "needs physics.enabled=true (PE-RLHF chooses between the "
                     "mentor's and the physics action); set both false for HACO")
-    raise _fail("physics.enabled", True, "needs selector.enabled=true (the selector decides when the physics "
+    raise invalid_value("physics.enabled", True, "needs selector.enabled=true (the selector decides when the physics "
                 "action replaces the mentor's); set both false for HACO, or selector.num_members=1 for the "
                 "'w/o ensemble' ablation")
 
@@ -594,7 +594,7 @@ def method_name(cfg: DictConfig) -> str:
 def driving_config(cfg: DictConfig, **changes: Any) -> DrivingConfig:
     """The :class:`DrivingConfig` of ``cfg.env``, with ``changes`` on top (e.g. ``split="test"`` for eval)."""
     values = {**OmegaConf.to_container(cfg.env, resolve=True), **changes}
-    _check_env(OmegaConf.create(values))
+    check_env(OmegaConf.create(values))
     return DrivingConfig.from_dict(values)
 
 

@@ -60,7 +60,7 @@ TESTING_PNG = "testing_curves.png"
 WARMUP_LABEL = "end of warm-up"
 
 
-def _series(rows: list[dict[str, float]], column: str) -> tuple[np.ndarray, np.ndarray]:
+def metric_series(rows: list[dict[str, float]], column: str) -> tuple[np.ndarray, np.ndarray]:
     pts = [(r[STEP], r[column]) for r in rows if STEP in r and column in r]
     if not pts:
         return np.empty(0), np.empty(0)
@@ -81,7 +81,7 @@ def _baseline_value(baseline: Mapping[str, Any] | None, metric: str) -> float | 
     return None
 
 
-def _mark_missing(ax, name: str) -> None:
+def mark_missing(ax, name: str) -> None:
     ax.text(0.5, 0.5, f"{name}\nnot logged", ha="center", va="center", transform=ax.transAxes,
             color="0.5", fontsize=9)
     ax.set_xticks([])
@@ -104,9 +104,9 @@ def _training_figure(rows, columns, warmup_steps: float | None = None):
     fig, axes = plt.subplots(2, 3, figsize=(15, 8), constrained_layout=True)
     for ax, (column, title) in zip(axes.flat, TRAINING_PANEL):
         ax.set_title(title, fontsize=10)
-        x, y = _series(rows, column)
+        x, y = metric_series(rows, column)
         if x.size == 0:
-            _mark_missing(ax, column)
+            mark_missing(ax, column)
             continue
         ax.plot(x, y, color="tab:blue", lw=1.5)
     ax = axes.flat[len(TRAINING_PANEL)]
@@ -114,7 +114,7 @@ def _training_figure(rows, columns, warmup_steps: float | None = None):
     plotted = 0
     for column in columns:
         if column.startswith(LOSS_PREFIX):
-            x, y = _series(rows, column)
+            x, y = metric_series(rows, column)
             if x.size:
                 ax.plot(x, y, lw=1.2, label=column[len(LOSS_PREFIX):])
                 plotted += 1
@@ -122,22 +122,22 @@ def _training_figure(rows, columns, warmup_steps: float | None = None):
         ax.set_yscale("symlog", linthresh=1e-2)  # losses differ by orders of magnitude and sign
         ax.legend(fontsize=8)
     else:
-        _mark_missing(ax, f"{LOSS_PREFIX}*")
+        mark_missing(ax, f"{LOSS_PREFIX}*")
     _mark_warmup(axes, warmup_steps)
     return fig, axes
 
 
-def _testing_figure(rows, baseline, baseline_label):
+def testing_figure(rows, baseline, baseline_label):
     fig, axes = plt.subplots(2, 3, figsize=(15, 8), constrained_layout=True)
     for ax, (metric, title) in zip(axes.flat, TESTING_PANEL):
         ax.set_title(title, fontsize=10)
         mean_col = f"{EVAL_PREFIX}{metric}_mean"
-        x, y = _series(rows, mean_col)
+        x, y = metric_series(rows, mean_col)
         if x.size == 0:
-            _mark_missing(ax, mean_col)
+            mark_missing(ax, mean_col)
             continue
         ax.plot(x, y, color="tab:red", lw=1.5, marker="o", ms=3, label="agent")
-        xs, std = _series(rows, f"{EVAL_PREFIX}{metric}_std")
+        xs, std = metric_series(rows, f"{EVAL_PREFIX}{metric}_std")
         if xs.size:
             lookup = dict(zip(xs, std))
             band = np.array([lookup.get(s, np.nan) for s in x])
@@ -152,7 +152,7 @@ def _testing_figure(rows, baseline, baseline_label):
     return fig, axes
 
 
-def _save(fig, axes, path: Path, suptitle: str) -> Path:
+def save_figure(fig, axes, path: Path, suptitle: str) -> Path:
     for ax in axes[-1]:
         ax.set_xlabel("environment steps")
     fig.suptitle(suptitle)
@@ -190,8 +190,8 @@ def plot_learning_curves(
     written: dict[str, Path] = {}
     if any(c in present for c, _ in TRAINING_PANEL) or any(c.startswith(LOSS_PREFIX) for c in present):
         fig, axes = _training_figure(rows, columns, warmup_steps)
-        written["training"] = _save(fig, axes, out_dir / TRAINING_PNG, "Training")
+        written["training"] = save_figure(fig, axes, out_dir / TRAINING_PNG, "Training")
     if any(f"{EVAL_PREFIX}{m}_mean" in present for m, _ in TESTING_PANEL):
-        fig, axes = _testing_figure(rows, baseline, str(label))
-        written["testing"] = _save(fig, axes, out_dir / TESTING_PNG, "Testing (test split, mean ± std)")
+        fig, axes = testing_figure(rows, baseline, str(label))
+        written["testing"] = save_figure(fig, axes, out_dir / TESTING_PNG, "Testing (test split, mean ± std)")
     return written

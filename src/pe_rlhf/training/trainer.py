@@ -87,7 +87,7 @@ class Counters:
         vars(self).update(state)
 
 
-def _next_multiple(frames: float, every: int) -> float:
+def next_multiple(frames: float, every: int) -> float:
     """The next frame count at which a periodic job runs (never, when ``every`` is 0)."""
     return float("inf") if every <= 0 else (int(frames) // every + 1) * every
 
@@ -307,8 +307,8 @@ class _Run:
         cfg, c = self.cfg, self.counters
         self.updates0, self.update_seconds0 = c.updates, c.update_seconds
         self.started = time.time()
-        self.next_eval = _next_multiple(c.frames, int(cfg.eval.every_frames))
-        self.next_ckpt = _next_multiple(c.frames, int(cfg.checkpoint.every_frames))
+        self.next_eval = next_multiple(c.frames, int(cfg.eval.every_frames))
+        self.next_ckpt = next_multiple(c.frames, int(cfg.checkpoint.every_frames))
         self.bar = tqdm(total=int(cfg.collector.total_frames), initial=int(c.frames), desc=method_name(cfg),
                         unit="step")
         self.updater.start()  # optim.async_updates: the learner thread (pe_rlhf.training.background_updates)
@@ -364,7 +364,7 @@ class _Run:
         if isinstance(fatigue, (int, float)):
             metrics["train/mentor_fatigue"] = float(fatigue)
         if c.frames >= self.next_eval:
-            self.next_eval = _next_multiple(c.frames, int(cfg.eval.every_frames))
+            self.next_eval = next_multiple(c.frames, int(cfg.eval.every_frames))
             with self.updater.paused():
                 summary = evaluate_actor(self.cpu_actor, cfg, self.env_config, int(cfg.eval.episodes))
             for k in EVAL_KEYS:
@@ -374,7 +374,7 @@ class _Run:
         self.bar.set_postfix(takeover=f"{metrics['train/takeover_rate']:.2f}", violations=int(c.safety_violations),
                              succ=f"{metrics['train/success_rate_total']:.2f}")
         if self.checkpoint_dir is not None and (c.frames >= self.next_ckpt or disconnects > self.disconnects):
-            self.next_ckpt = _next_multiple(c.frames, int(cfg.checkpoint.every_frames))
+            self.next_ckpt = next_multiple(c.frames, int(cfg.checkpoint.every_frames))
             with self.updater.paused():  # networks, optimisers and counters from one moment
                 self.save()
         self.disconnects = disconnects

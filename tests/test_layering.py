@@ -1,0 +1,52 @@
+"""Package boundaries: no module imports a ``_private`` name from another package of ``pe_rlhf``."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+SRC = Path(__file__).resolve().parents[1] / "src" / "pe_rlhf"
+
+
+def _package(path: Path) -> str:
+    parts = path.relative_to(SRC).parts
+    return parts[0] if len(parts) > 1 else "<top level>"
+
+
+def _private(name: str) -> bool:
+    return name.startswith("_") and not (name.startswith("__") and name.endswith("__"))  # __version__ is public
+
+
+def cross_package_private_imports() -> list[str]:
+    found = []
+    for path in sorted(SRC.rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if not (isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("pe_rlhf")):
+                continue
+            parts = node.module.split(".")
+            target = parts[1] if len(parts) > 2 else "<top level>"  # pe_rlhf.x.y: package x; pe_rlhf.x: top level
+            if len(parts) == 2 and (SRC / parts[1]).is_dir():
+                target = parts[1]
+            if target == _package(path):
+                continue
+            for alias in node.names:
+                if _private(alias.name) or any(_private(p) for p in parts[1:]):
+                    found.append(f"{path.relative_to(SRC.parent)}:{node.lineno} imports {alias.name} from {node.module}")
+    return found
+
+
+def test_no_module_imports_a_private_name_from_another_package():
+    assert cross_package_private_imports() == []
+
+
+def test_the_check_sees_a_crossing(tmp_path):
+    """The scan itself: a private import across packages is reported, one within a package is not."""
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    (tmp_path / "a" / "m.py").write_text("from pe_rlhf.b.n import _helper\nfrom pe_rlhf.a.k import _own\n")
+    (tmp_path / "b" / "n.py").write_text("def _helper(): pass\n")
+    globals()["SRC"], saved = tmp_path, SRC
+    try:
+        assert cross_package_private_imports() == [f"{tmp_path.name}/a/m.py:1 imports _helper from pe_rlhf.b.n"]
+    finally:
+        globals()["SRC"] = saved
