@@ -338,12 +338,13 @@ def test_epsilon_select_null_takes_the_value_sources_own(overrides, expected):
 
 
 @pytest.mark.parametrize("overrides, expected", [
-    ([], True),  # the forecast needs no fit: it judges the warm-up too
-    (["selector.value=expert"], True),
-    (["selector.value=warmup"], False),  # fitted on the warm-up: it cannot judge it
-    (["collector.warmup_policy=runs/x"], False),  # a trained policy drives the warm-up, not the mentor
-    (["selector.warmup_selection=false"], False),
-    (["selector.enabled=false", "physics.enabled=false"], False),  # HACO
+    ([], False),  # the default: the paper's warm-up, which bypasses the selector
+    (["selector.warmup_selection=auto"], True),  # the forecast needs no fit: it can judge the warm-up too
+    (["selector.warmup_selection=auto", "selector.value=expert"], True),
+    (["selector.warmup_selection=auto", "selector.value=warmup"], False),  # fitted on the warm-up: it cannot
+    (["selector.warmup_selection=auto", "collector.warmup_policy=runs/x"], False),  # a trained policy drives it
+    (["selector.warmup_selection=true"], True),
+    (["selector.warmup_selection=auto", "selector.enabled=false", "physics.enabled=false"], False),  # HACO
 ])
 def test_warmup_selection_auto(overrides, expected):
     assert warmup_selection(load_config(overrides=overrides)) is expected

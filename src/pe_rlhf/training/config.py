@@ -45,7 +45,7 @@ DEFAULTS: dict[str, Any] = {
     "mentor": {"name": "professional", "seed": 0, "kwargs": {}},
     "physics": {"enabled": True, "see_obstacles": False, "stop_for_obstacles": True, "use_idm": True, "use_mobil": True},
     "selector": {"enabled": True, "value": "forecast", "epsilon_select": None, "variance_threshold": None,
-                 "switch_margin": None, "warmup_selection": "auto", "num_members": 5,
+                 "switch_margin": None, "warmup_selection": False, "num_members": 5,
                  "hidden": [256, 256], "warmup_fit_steps": 3000, "refresh_every": 0, "refresh_steps": 500,
                  "refresh_data": "warmup",
                  "fit_loss": "mean", "target_noise": 0.1, "tau": 0.005, "lr": 3.0e-4, "batch_size": 256},
