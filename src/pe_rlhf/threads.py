@@ -3,11 +3,13 @@
 - :func:`torch_threads`: run a block with ``n`` intra-op threads (acting runs on one).
 - :class:`FreeCores`: how many cores other processes leave free, from ``/proc/stat`` (Linux), so the
   updates take their share of a busy machine instead of fighting for it.
-- ``OMP_WAIT_POLICY=PASSIVE`` is set by ``import pe_rlhf`` (before torch starts OpenMP, unless the
-  variable or ``GOMP_SPINCOUNT`` is already set): OpenMP threads then sleep at barriers instead of
-  spinning. Measured with a 2-thread MLP update while both cores ran other jobs: 582 ms an update with
-  GNU OpenMP's default spinning against 36 ms passive and 28 ms on one thread
-  (``docs/experiments/speed.md``).
+
+Why the count must follow the load (a batch-256 MLP update, 2 cores, ``docs/experiments/speed.md``): with
+both cores busy with other jobs, 2 threads took 582 ms an update under GNU OpenMP's default spin-waiting
+(a thread spins at each barrier for a partner that is not running), against 28 ms on 1 thread. With the
+cores idle, 2 spinning threads took 24 ms, 1 thread 30 ms. ``OMP_WAIT_POLICY=PASSIVE`` (threads sleep at
+barriers) avoids the collapse (36 ms busy) but costs the idle case (38 ms: a wake-up per parallel
+region), so it is not set: the thread count is what adapts.
 """
 
 from __future__ import annotations
