@@ -56,6 +56,7 @@ def test_crash_safe_csv_through_the_torchrl_interface(tmp_path):
                            ["100", "0.5", "1.25", ""], ["200", "", "", "1"], ["300", "", "0.75", ""],
                            ["400", "", "", ""]]
     assert [p.name for p in (tmp_path / "a").iterdir()] == ["metrics.csv"]  # no videos, no temp files
+    assert path.stat().st_mode & 0o777 == 0o644  # readable by others, like every output (not mkstemp's 0600)
 
     with MetricsLogger(tmp_path / "b") as same:  # MetricsLogger writes the very same bytes through it
         same.log(100, {"train/takeover_rate": 0.5, "loss/qvalue": torch.tensor(1.25)})

@@ -141,6 +141,7 @@ class CrashSafeCSV:
                 writer.writerows(self.rows)
                 f.flush()
                 os.fsync(f.fileno())
+            os.chmod(tmp, 0o644)  # mkstemp makes 0600 files; a run's metrics are read like any other file
             os.replace(tmp, self.path)
         except BaseException:
             Path(tmp).unlink(missing_ok=True)
