@@ -44,7 +44,7 @@ def test_csv_rows_and_new_columns_readable_while_open(tmp_path):
         _, rows = _read(path)
         assert len(rows) == 3 and rows[2]["loss/qvalue"] == "0.75"
         assert logger.last_step == 300
-    assert not list(tmp_path.glob(".metrics-*"))  # no temporary files left behind
+    assert not list(tmp_path.glob(".metrics*"))  # no temporary files left behind
     columns, parsed = read_metrics_csv(path)
     assert columns[0] == "step" and parsed[1] == {"step": 200.0, "train/takeover_rate": 0.25,
                                                   "eval/success_rate_mean": 1.0}

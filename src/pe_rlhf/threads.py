@@ -93,11 +93,11 @@ class FreeCores:
         return self.count
 
 
-def thread_budget(setting: int | str):
+def thread_budget(setting: int | str, limit: int | None = None):
     """A callable returning the updates' intra-op thread count for ``optim.threads``: a fixed count for an
-    int, :class:`FreeCores` for ``"auto"``."""
+    int, :class:`FreeCores` (at most ``limit``) for ``"auto"``."""
     if setting == "auto":
-        return FreeCores()
+        return FreeCores(limit)
     count = int(setting)
     return lambda: count
 

@@ -48,7 +48,7 @@ from pe_rlhf.transforms import (
     RealtimePacing,
     TrafficDisturbanceCost,
 )
-from pe_rlhf.threads import FreeCores
+from pe_rlhf.threads import thread_budget
 from pe_rlhf.training.value_expert import load_value_expert, parse_value_source
 
 OBS_DIM = 250  # the default world's observation (240 lidar beams); obs_dim(cfg) follows env.lidar_beams and env.lane_features
@@ -380,6 +380,5 @@ def build_updater(cfg, loss: PERLHFLoss, optimizers: dict, soft_update: SoftUpda
               "device": device}
     if cfg.optim.async_updates:
         return BackgroundUpdater(loss, optimizers, soft_update, replay, threads=max(1, update_threads - 1), **kwargs)
-    setting = cfg.optim.threads
-    threads = FreeCores(update_threads) if setting == "auto" else int(setting)
-    return SyncUpdater(loss, optimizers, soft_update, replay, threads=threads, **kwargs)
+    return SyncUpdater(loss, optimizers, soft_update, replay, threads=thread_budget(cfg.optim.threads, update_threads),
+                       **kwargs)

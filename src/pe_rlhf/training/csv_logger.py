@@ -16,10 +16,10 @@ a resumed curve has no repeat; without ``resume`` an existing file is replaced.
 from __future__ import annotations
 
 import csv
+import io
 import math
 import numbers
 import os
-import tempfile
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -128,33 +128,17 @@ class CrashSafeCSV:
         self.rows = rows
 
     def _rewrite(self) -> None:
-        """Write header + all rows to a temp file, fsync, swap it in, reopen for appending."""
+        """Write header + all rows atomically (:func:`pe_rlhf.durable.replace_bytes`), reopen for appending."""
         if self._file is not None:
             self._file.close()
             self._file = None
-        fd, tmp = tempfile.mkstemp(prefix=f".{self.path.stem}-", suffix=f"{self.path.suffix}.tmp",
-                                   dir=self.path.parent)
-        try:
-            with os.fdopen(fd, "w", newline="") as f:
-                writer = csv.DictWriter(f, fieldnames=self.columns, restval="", extrasaction="ignore")
-                writer.writeheader()
-                writer.writerows(self.rows)
-                f.flush()
-                os.fsync(f.fileno())
-            os.chmod(tmp, 0o644)  # mkstemp makes 0600 files; a run's metrics are read like any other file
-            os.replace(tmp, self.path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
-        self._fsync_dir()
+        text = io.StringIO(newline="")
+        writer = csv.DictWriter(text, fieldnames=self.columns, restval="", extrasaction="ignore")
+        writer.writeheader()
+        writer.writerows(self.rows)
+        durable.replace_bytes(self.path, text.getvalue().encode())  # temp file, fsync, rename, directory fsync
         self._file = open(self.path, "a", newline="")
         self._writer = csv.DictWriter(self._file, fieldnames=self.columns, restval="", extrasaction="ignore")
-
-    def _fsync_dir(self) -> None:
-        try:
-            durable.fsync_path(self.path.parent)
-        except OSError:  # a file system that cannot sync directories: the rename itself still stands
-            pass
 
 
 class CrashSafeCSVLogger(Logger):
