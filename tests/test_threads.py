@@ -1,6 +1,12 @@
-"""``pe_rlhf.threads``: the updates take the cores other processes leave."""
+"""``pe_rlhf.threads``: the updates take the cores other processes leave, and OpenMP threads sleep."""
 
 from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import pytest
 
 from pe_rlhf import threads
 
@@ -56,6 +62,15 @@ def test_free_cores_on_this_machine_is_a_valid_count():
 def test_thread_budget():
     assert threads.thread_budget(3)() == 3
     assert isinstance(threads.thread_budget("auto"), threads.FreeCores)
+
+
+@pytest.mark.parametrize("env, expected", [({}, "PASSIVE"), ({"OMP_WAIT_POLICY": "ACTIVE"}, "ACTIVE"),
+                                           ({"GOMP_SPINCOUNT": "300000"}, "unset")])
+def test_importing_pe_rlhf_makes_openmp_threads_passive_unless_told_otherwise(env, expected):
+    clean = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")}
+    out = subprocess.run([sys.executable, "-c", "import pe_rlhf, os; print(os.environ.get('OMP_WAIT_POLICY', 'unset'))"],
+                         env={**clean, **env}, capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == expected
 
 
 def test_sync_updater_asks_the_budget_before_each_round():

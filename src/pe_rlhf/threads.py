@@ -9,7 +9,10 @@ both cores busy with other jobs, 2 threads took 582 ms an update under GNU OpenM
 (a thread spins at each barrier for a partner that is not running), against 28 ms on 1 thread. With the
 cores idle, 2 spinning threads took 24 ms, 1 thread 30 ms. ``OMP_WAIT_POLICY=PASSIVE`` (threads sleep at
 barriers) avoids the collapse (36 ms busy) but costs the idle case (38 ms: a wake-up per parallel
-region), so it is not set: the thread count is what adapts.
+region). ``import pe_rlhf`` still sets it (unless ``OMP_WAIT_POLICY`` or ``GOMP_SPINCOUNT`` is set): without it
+the learner thread of ``optim.async_updates`` and the acting thread spin against each other and a 50 Hz
+paced run misses its frames (``tests/test_realtime.py``). Set ``GOMP_SPINCOUNT=300000`` for the faster idle
+updates of synchronous runs.
 """
 
 from __future__ import annotations
