@@ -2,9 +2,10 @@
 HAIM-DRL's traffic-disturbance cost."""
 
 from pe_rlhf.transforms.disturbance import TrafficDisturbanceCost
+from pe_rlhf.transforms.hybrid_selection import HybridSelectionTransform
 from pe_rlhf.transforms.intervention import InterventionTransform, takeover_cost
 from pe_rlhf.transforms.pacing import RealtimePacing
 from pe_rlhf.transforms.selector import HybridActionSelector
 
-__all__ = ["HybridActionSelector", "InterventionTransform", "RealtimePacing", "TrafficDisturbanceCost",
+__all__ = ["HybridActionSelector", "HybridSelectionTransform", "InterventionTransform", "RealtimePacing", "TrafficDisturbanceCost",
            "takeover_cost"]

@@ -28,6 +28,18 @@ A non-finite agent proposal (a diverged actor) is never executed: its NaN/inf en
 coasting) for the mentor, the cost and the simulator, with a warning; the root ``action`` keeps it
 as proposed.
 
+**Selection as a transform of its own.** Given ``physics`` and no selector, the transform only *proposes*:
+during a takeover it writes ``mentor_action``, ``physics_action`` and ``intervention`` (True: a step to judge;
+False in the warm-up unless ``warmup_selection``) into the tensordict on its way to the simulator, and a
+:class:`~pe_rlhf.transforms.HybridSelectionTransform` nearer the simulator chooses; the step outputs then
+follow what it executed (``behavior_action``, ``mentor_selected``, the takeover cost)::
+
+    env = TransformedEnv(base, Compose(HybridSelectionTransform(selector),
+                                       InterventionTransform(mentor, physics=IDMMobilPolicy())))
+
+TorchRL runs inverse transforms from the last in a ``Compose`` to the first, so the selection, which follows
+the proposals in the action's path, sits *before* the transform that writes them.
+
 Put it inside each worker's env factory (it drives the simulator of a single env). Mentor and physics
 receive the simulator: the ``DrivingEnv`` of a driving env, or the gymnasium env's ``unwrapped`` of any
 other TorchRL env over a gymnasium env (e.g. ``GymEnv("Pendulum-v1")``).
@@ -41,8 +53,17 @@ from torchrl.data import Composite
 from torchrl.envs import EnvBase, Transform
 
 from pe_rlhf.envs.torchrl_env import unwrap
+from pe_rlhf.transforms.keys import INTERVENTION, MENTOR_ACTION, MENTOR_SELECTED, PHYSICS_ACTION
 from pe_rlhf.transforms.takeover_core import (OUT_KEYS, ZERO_NORM, TakeoverCore, takeover_cost, takeover_specs,
                                               takeover_tensors)
+
+
+def simulator_of(env):
+    """The simulator a transform of ``env`` hands to mentors, physics and forecasts: the ``DrivingEnv`` of a
+    driving env; for any other TorchRL env over a gymnasium env the gymnasium env's ``unwrapped``."""
+    sim = unwrap(env)
+    gym_env = getattr(sim, "_env", None) if isinstance(sim, EnvBase) else None
+    return getattr(gym_env, "unwrapped", gym_env) if gym_env is not None else sim
 
 
 class InterventionTransform(Transform):
@@ -53,8 +74,10 @@ class InterventionTransform(Transform):
 
     Args:
         mentor: any :class:`~pe_rlhf.mentors.base.Mentor`.
-        selector: a :class:`~pe_rlhf.transforms.selector.HybridActionSelector` (PE-RLHF) or None (HACO).
-        physics: a callable ``physics(env) -> action`` (e.g. ``IDMMobilPolicy()``), required with a selector.
+        selector: a :class:`~pe_rlhf.transforms.selector.HybridActionSelector` (PE-RLHF) or None (HACO, or
+            the selection left to a :class:`~pe_rlhf.transforms.HybridSelectionTransform`: module docstring).
+        physics: a callable ``physics(env) -> action`` (e.g. ``IDMMobilPolicy()``), required with a selector;
+            without one, the transform proposes physics' action to a selection transform.
         warmup_steps: for the first ``warmup_steps`` steps the mentor (or ``warmup_driver``) always drives
             and the selector is bypassed (the warm-up data that trains the Q-ensemble).
         in_keys: ``[action_key, observation_key]``: where the agent's proposal is (and the executed action
@@ -80,7 +103,8 @@ class InterventionTransform(Transform):
         self.action_key, self.observation_key = in_keys
         self._renamed = dict(zip(OUT_KEYS, out_keys))
         self.core = TakeoverCore(mentor, selector, physics, warmup_steps, warmup_driver,
-                                 owner="InterventionTransform", warmup_selection=warmup_selection)
+                                 owner="InterventionTransform", warmup_selection=warmup_selection,
+                                 propose_physics=selector is None and physics is not None)
         # The same objects as the core's; attributes of the module as before (a selector is a submodule).
         self.mentor, self.selector, self.physics = mentor, selector, physics
 
@@ -105,9 +129,7 @@ class InterventionTransform(Transform):
     def driving_env(self):
         """The simulator handed to the mentor and physics: the ``DrivingEnv`` of a driving env; for any
         other base env (e.g. ``GymEnv("Pendulum-v1")``) the underlying gymnasium env's ``unwrapped``."""
-        sim = unwrap(self.parent)
-        gym_env = getattr(sim, "_env", None) if isinstance(sim, EnvBase) else None
-        return getattr(gym_env, "unwrapped", gym_env) if gym_env is not None else sim
+        return simulator_of(self.parent)
 
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
         self.core.reset(self.driving_env)
@@ -124,9 +146,25 @@ class InterventionTransform(Transform):
         d = self.core.decide(self.driving_env, tensordict.get(self.observation_key),
                              agent_action.detach().cpu().numpy())
         tensordict.set(self.action_key, torch.as_tensor(d.behavior_action, dtype=agent_action.dtype))
+        if self.core.propose_physics:  # proposals for a HybridSelectionTransform nearer the simulator
+            tensordict.set(self._renamed[MENTOR_ACTION], torch.as_tensor(d.mentor_action, dtype=agent_action.dtype))
+            tensordict.set(self._renamed[PHYSICS_ACTION], torch.as_tensor(d.physics_action, dtype=agent_action.dtype))
+            tensordict.set(self._renamed[INTERVENTION], torch.tensor([d.judged]))
+            # The root carries the last step's choice (an observation); a selection nearer the simulator
+            # writes this step's. Dropped here, so a selection placed on the wrong side is caught in _step.
+            if self._renamed[MENTOR_SELECTED] in tensordict.keys():
+                del tensordict[self._renamed[MENTOR_SELECTED]]
         return tensordict
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
+        pending = self.core.pending
+        if pending is not None and pending.judged:  # ``tensordict`` is what the simulator received
+            chosen = tensordict.get(self._renamed[MENTOR_SELECTED], None)
+            if chosen is None:
+                raise RuntimeError("InterventionTransform(physics=..., selector=None) proposes physics' action to a "
+                                   "HybridSelectionTransform, and none judged this step: put one before it in the "
+                                   "Compose (nearer the simulator), or pass a selector")
+            self.core.settle(tensordict.get(self.action_key).detach().cpu().numpy(), bool(chosen.any()))
         next_tensordict.update({self._renamed[k]: v for k, v in takeover_tensors(self.core.commit()).items()})
         return next_tensordict
 
@@ -141,4 +179,4 @@ class InterventionTransform(Transform):
         return {"total_steps": self.total_steps, "mentor": self.mentor.state_dict()}
 
 
-__all__ = ["OUT_KEYS", "ZERO_NORM", "InterventionTransform", "takeover_cost"]
+__all__ = ["OUT_KEYS", "ZERO_NORM", "InterventionTransform", "simulator_of", "takeover_cost"]

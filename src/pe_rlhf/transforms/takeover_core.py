@@ -11,7 +11,7 @@ tensordict keys the transform writes (:data:`OUT_KEYS`, specs from :func:`takeov
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -62,6 +62,7 @@ class TakeoverStep:
     mentor_action: np.ndarray
     physics_action: np.ndarray  # zeros outside a PE-RLHF takeover
     mentor_selected: bool
+    judged: bool = False  # proposed to a selection downstream (``propose_physics``), settled by ``settle``
 
 
 class TakeoverCore:
@@ -70,11 +71,19 @@ class TakeoverCore:
 
     ``owner`` names the face in errors and warnings. ``env`` arguments are the simulator handed to the
     mentor, the physics policy and the selector (a ``DrivingEnv``, or a gymnasium env's ``unwrapped``).
+
+    ``propose_physics`` (physics and no selector): during a takeover (and every warm-up step with
+    ``warmup_selection``) physics proposes its action and the decision is marked ``judged``; the mentor's action
+    stands until :meth:`settle` is told what a selection outside the core executed
+    (:class:`~pe_rlhf.transforms.HybridSelectionTransform`).
     """
 
     def __init__(self, mentor, selector=None, physics=None, warmup_steps: int = 0, warmup_driver=None,
-                 owner: str = "TakeoverCore", warmup_selection: bool = False):
-        if (selector is None) != (physics is None):
+                 owner: str = "TakeoverCore", warmup_selection: bool = False, propose_physics: bool = False):
+        if propose_physics and (physics is None or selector is not None):
+            raise ValueError(f"{owner}: propose_physics needs physics and no selector (a selection transform "
+                             "judges the proposals)")
+        if not propose_physics and (selector is None) != (physics is None):
             raise ValueError(f"{owner} needs both selector and physics (PE-RLHF) or neither (HACO)")
         if warmup_steps < 0:
             raise ValueError(f"warmup_steps={warmup_steps} must be >= 0")
@@ -82,7 +91,8 @@ class TakeoverCore:
             raise TypeError(f"warmup_driver must be a policy driver(observation, env) -> action, got "
                             f"{type(warmup_driver).__name__}")
         self.mentor, self.selector, self.physics = mentor, selector, physics
-        if warmup_selection and (selector is None or warmup_driver is not None):
+        self.propose_physics = bool(propose_physics)
+        if warmup_selection and ((selector is None and not propose_physics) or warmup_driver is not None):
             raise ValueError(f"{owner}: warmup_selection needs a selector and a mentor-driven warm-up "
                              "(no warmup_driver)")
         self.warmup_steps = int(warmup_steps)
@@ -112,6 +122,7 @@ class TakeoverCore:
         physics_action = np.zeros_like(mentor_action)
         mentor_selected = bool(takeover)
         executed = a_av
+        judged = False
         if warmup and self.warmup_driver is not None:
             executed = self._driver_action(observation, env, mentor_action.shape)
             takeover, mentor_selected = True, False
@@ -119,21 +130,43 @@ class TakeoverCore:
             takeover, executed, mentor_selected = True, mentor_action, True
             if self.warmup_selection:  # a value source that needs no fit judges the warm-up too
                 physics_action = np.asarray(self.physics(env), dtype=np.float32)
-                executed, mentor_selected = self._select(env, observation, mentor_action, physics_action)
+                judged = self.propose_physics
+                if not judged:
+                    executed, mentor_selected = self._select(env, observation, mentor_action, physics_action)
         elif takeover:
             executed = mentor_action
-            if self.selector is not None:
+            if self.selector is not None or self.propose_physics:
                 physics_action = np.asarray(self.physics(env), dtype=np.float32)
-                executed, mentor_selected = self._select(env, observation, mentor_action, physics_action)
-        show = getattr(self.mentor, "show_control", None)
-        if show is not None and takeover and not warmup:  # a person's window shows who drives now
-            show("HUMAN" if mentor_selected else "PHYSICS")
+                judged = self.propose_physics
+                if not judged:
+                    executed, mentor_selected = self._select(env, observation, mentor_action, physics_action)
+        if takeover and not warmup and not judged:
+            self._show_control(mentor_selected)
         start = bool(takeover) and not self._in_takeover
         self.pending = TakeoverStep(
             agent_action=a_av, behavior_action=executed, intervention=bool(takeover), intervention_start=start,
             intervention_cost=takeover_cost(a_av, executed) if start else 0.0, mentor_action=mentor_action,
-            physics_action=physics_action, mentor_selected=mentor_selected and bool(takeover))
+            physics_action=physics_action, mentor_selected=mentor_selected and bool(takeover), judged=judged)
         return self.pending
+
+    def settle(self, executed_action, mentor_selected: bool) -> TakeoverStep:
+        """A judged pending decision (``propose_physics``): what the selection outside the core executed,
+        ``executed_action`` ``(A,)`` and whether it was the mentor's; the takeover cost follows it."""
+        d = self.pending
+        if d is None or not d.judged:
+            raise RuntimeError(f"{self.owner}: settle() needs a pending decision proposed for selection")
+        executed = np.array(executed_action, dtype=np.float32).reshape(d.behavior_action.shape)
+        self.pending = replace(d, behavior_action=executed, mentor_selected=bool(mentor_selected) and d.intervention,
+                               intervention_cost=takeover_cost(d.agent_action, executed) if d.intervention_start
+                               else 0.0)
+        if d.intervention and self.total_steps >= self.warmup_steps:
+            self._show_control(bool(mentor_selected))
+        return self.pending
+
+    def _show_control(self, mentor_selected: bool) -> None:
+        show = getattr(self.mentor, "show_control", None)
+        if show is not None:  # a person's window shows who drives now
+            show("HUMAN" if mentor_selected else "PHYSICS")
 
     def commit(self) -> TakeoverStep:
         """The simulator executed the pending decision: advance the takeover state; returns the decision."""
