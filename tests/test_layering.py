@@ -1,11 +1,45 @@
-"""Package boundaries: no module imports a ``_private`` name from another package of ``pe_rlhf``."""
+"""Package boundaries: the import layers and no import cycle (``lint-imports``, contracts in pyproject.toml), and
+no module imports a ``_private`` name from another package of ``pe_rlhf``."""
 
 from __future__ import annotations
 
 import ast
+import os
+import subprocess
+import sys
 from pathlib import Path
 
-SRC = Path(__file__).resolve().parents[1] / "src" / "pe_rlhf"
+ROOT = Path(__file__).resolve().parents[1]
+SRC = ROOT / "src" / "pe_rlhf"
+LINT_IMPORTS = Path(sys.executable).parent / "lint-imports"
+
+
+def _lint_imports(cwd: Path, *args: str, pythonpath: Path | None = None) -> subprocess.CompletedProcess:
+    env = {**os.environ, **({"PYTHONPATH": str(pythonpath)} if pythonpath else {})}
+    return subprocess.run([str(LINT_IMPORTS), "--no-cache", *args], cwd=cwd, env=env, capture_output=True,
+                          text=True, timeout=300)
+
+
+def test_the_import_layers_and_no_cycle_hold():
+    """apps -> algorithms -> runtime -> components -> world -> utilities, and no cycle at any depth."""
+    result = _lint_imports(ROOT)
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-2000:]
+    assert "2 kept, 0 broken" in result.stdout
+
+
+def test_the_contracts_catch_an_upward_import_and_a_cycle(tmp_path):
+    """The same two contract kinds on a tiny package with one upward import that closes a cycle: both break."""
+    pkg = tmp_path / "toy"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text("")
+    (pkg / "high.py").write_text("from toy import low\n")
+    (pkg / "low.py").write_text("import toy.high\n")
+    (tmp_path / "contracts.toml").write_text(
+        '[tool.importlinter]\nroot_package = "toy"\n\n[[tool.importlinter.contracts]]\nname = "layers"\n'
+        'type = "layers"\ncontainers = ["toy"]\nlayers = ["high", "low"]\n\n[[tool.importlinter.contracts]]\n'
+        'name = "acyclic"\ntype = "acyclic_siblings"\nancestors = ["toy"]\n')
+    result = _lint_imports(tmp_path, "--config", "contracts.toml", pythonpath=tmp_path)
+    assert result.returncode != 0 and "0 kept, 2 broken" in result.stdout, result.stdout[-2000:]
 
 
 def _package(path: Path) -> str:

@@ -308,7 +308,7 @@ def test_an_adversarial_seek_grabs_the_wheel(test_env):
 def test_a_lane_change_the_mentor_did_not_plan_becomes_its_plan(test_env, adopt):
     from pe_rlhf.envs.geometry import LANE_WIDTH
     from pe_rlhf.mentors.driver import DriverParams, PrivilegedDriver
-    from pe_rlhf.physics.perception import ego_lane_slot
+    from pe_rlhf.envs.perception import ego_lane_slot
 
     driver = PrivilegedDriver(DriverParams(adopt_lane=adopt))
     test_env.reset(options={"scene_seed": 1000})

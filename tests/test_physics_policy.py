@@ -27,7 +27,7 @@ from pe_rlhf.envs.traffic import BrokenDownCar, TrafficCar
 from pe_rlhf.physics import IDMMobilPolicy, MOBILParams, PhysicsConfig
 from pe_rlhf.physics.idm import idm_acceleration, idm_equilibrium_gap
 from pe_rlhf.physics.module import PhysicsPolicyModule
-from pe_rlhf.physics.perception import ego_lane_slot, neighbours
+from pe_rlhf.envs.perception import ego_lane_slot, neighbours
 
 DT = 0.1  # [s] one policy step (policy_frequency = 10 Hz)
 CAR_LENGTH = 4.5  # [m] ego and TrafficCar

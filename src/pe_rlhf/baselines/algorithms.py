@@ -299,24 +299,3 @@ class CPOLearner(_OnPolicyLearner):
         log.update(summarise(self.fit(data, self.loss, self.optimizers)))
         return log
 
-
-def build_learner(cfg, obs_dim: int, run_dir=None):
-    """The learner of ``cfg.method`` (``run_dir``: where the imitation learners record missing demonstrations
-    when ``data.path`` is null; the offline methods have their own run, :mod:`pe_rlhf.baselines.offline`)."""
-    from pe_rlhf.baselines.config import method_of
-
-    m = method_of(cfg)
-    if m.family in ("gail", "hil"):
-        from pe_rlhf.baselines.imitation_learners import (
-            GAILLearner,
-            InterventionLearner,
-        )
-
-        if m.family == "gail":
-            return GAILLearner(cfg, obs_dim, run_dir)
-        return InterventionLearner(cfg, obs_dim, run_dir, weighted=str(cfg.method) == "iwr")
-    if m.family == "sac":
-        return SACLearner(cfg, obs_dim, m.lagrangian)
-    if m.family == "ppo":
-        return PPOLearner(cfg, obs_dim, m.lagrangian)
-    return CPOLearner(cfg, obs_dim)

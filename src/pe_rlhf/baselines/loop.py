@@ -32,7 +32,7 @@ from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.envs.utils import ExplorationType
 from tqdm import tqdm
 
-from pe_rlhf.baselines.algorithms import build_learner
+from pe_rlhf.baselines.algorithms import CPOLearner, PPOLearner, SACLearner
 from pe_rlhf.baselines.config import method_of
 from pe_rlhf.baselines.episodes import EpisodeTracker, batch_log
 from pe_rlhf.envs.torchrl_env import make_env
@@ -217,21 +217,33 @@ class BaselineRun:
         return final
 
 
+def build_learner(cfg, obs_dim: int, run_dir=None):
+    """The learner of ``cfg.method`` (``run_dir``: where the imitation learners record missing demonstrations
+    when ``data.path`` is null; the offline methods have their own run, :mod:`pe_rlhf.baselines.offline`)."""
+    m = method_of(cfg)
+    if m.family in ("gail", "hil"):
+        from pe_rlhf.baselines.imitation_learners import (
+            GAILLearner,
+            InterventionLearner,
+        )
+
+        if m.family == "gail":
+            return GAILLearner(cfg, obs_dim, run_dir)
+        return InterventionLearner(cfg, obs_dim, run_dir, weighted=str(cfg.method) == "iwr")
+    if m.family == "sac":
+        return SACLearner(cfg, obs_dim, m.lagrangian)
+    if m.family == "ppo":
+        return PPOLearner(cfg, obs_dim, m.lagrangian)
+    return CPOLearner(cfg, obs_dim)
+
+
 def load_baseline_actor(run_dir: str | Path):
     """The trained actor of a finished baseline run: ``config.yaml`` for the sizes, ``actor.pt`` loaded
     with ``weights_only=True`` into :func:`pe_rlhf.modules.make_actor` (evaluate it with
     :class:`pe_rlhf.evaluation.TorchRLPolicyAdapter`)."""
-    from omegaconf import OmegaConf
+    from pe_rlhf.training.trained_policy import load_run_actor
 
-    from pe_rlhf.baselines.config import load_baseline_config
-    from pe_rlhf.modules import make_actor
-
-    run_dir = Path(run_dir)
-    method = OmegaConf.load(run_dir / "config.yaml").get("method")
-    cfg = load_baseline_config(str(method), run_dir / "config.yaml", apply_profile=False)
-    actor = make_actor(obs_dim(cfg), hidden=tuple(cfg.loss.hidden))
-    actor.load_state_dict(torch.load(run_dir / ACTOR_FILE, weights_only=True, map_location="cpu"))
-    return actor
+    return load_run_actor(run_dir)
 
 
 def train_baseline(cfg, out_dir: Path, logger, checkpoint_dir: Path | None = None, resume: bool = False) -> dict:

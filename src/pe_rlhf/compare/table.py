@@ -29,15 +29,8 @@ from typing import Any
 from pe_rlhf.compare.plots import row_curve
 from pe_rlhf.evaluation.statistics import interval_text, seed_stats
 from pe_rlhf.compare.rows import TRAINED, Row
-from pe_rlhf.sweeps.summary import (
-    METRICS,
-    NAN,
-    Metric,
-    last_csv_row,
-    logged_metrics,
-    write_csv,
-    metric_values,
-)
+from pe_rlhf.sweeps.metrics import METRICS, NAN, Metric, last_csv_row, logged_metrics, metric_values
+from pe_rlhf.sweeps.summary import write_csv
 
 TABLE_MD, TABLE_CSV = "table.md", "table.csv"
 

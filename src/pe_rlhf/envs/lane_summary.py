@@ -33,7 +33,7 @@ LANE_FEATURES = 2 + 3 * 6
 
 def lane_features(env, v_max: float) -> np.ndarray:
     """The table above for ``env`` (a :class:`~pe_rlhf.envs.driving_env.DrivingEnv`) now."""
-    from pe_rlhf.physics.perception import ego_lane_slot, leader_and_follower, neighbours  # physics imports envs
+    from pe_rlhf.envs.perception import ego_lane_slot, leader_and_follower, neighbours  # noqa: PLC0415
 
     items = neighbours(env, include_obstacles=True, radius=LANE_RANGE + 10.0)
     slot, _ = ego_lane_slot(env)

@@ -22,7 +22,7 @@ from highway_env import utils
 
 from pe_rlhf.envs.action import controls_to_action
 from pe_rlhf.physics.idm import IDMParams, idm_acceleration
-from pe_rlhf.physics.perception import Neighbour, ego_lane_slot, leader_and_follower, neighbours, occupies
+from pe_rlhf.envs.perception import Neighbour, ego_lane_slot, leader_and_follower, neighbours, occupies
 from pe_rlhf.physics.policy import MIN_CONTROL_SPEED, IDMMobilPolicy, PhysicsConfig
 
 LOOK_AHEAD = 90.0  # [m] lane planning horizon

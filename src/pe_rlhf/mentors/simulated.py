@@ -33,7 +33,7 @@ from pe_rlhf.envs.action import MAX_STEERING
 from pe_rlhf.mentors.base import Mentor, MentorDecision
 from pe_rlhf.mentors.driver import DriverParams, PrivilegedDriver
 from pe_rlhf.mentors.takeover import TakeoverRule
-from pe_rlhf.physics.perception import ego_lane_slot
+from pe_rlhf.envs.perception import ego_lane_slot
 
 ERROR_KINDS = ("steer", "brake", "throttle")
 ERROR_STEPS = (3, 10)  # inclusive range of an error's duration [steps]

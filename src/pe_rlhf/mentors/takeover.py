@@ -45,7 +45,7 @@ from typing import Any
 import numpy as np
 
 from pe_rlhf.envs.action import action_to_controls
-from pe_rlhf.physics.perception import ego_lane_slot, leader_and_follower, neighbours
+from pe_rlhf.envs.perception import ego_lane_slot, leader_and_follower, neighbours
 
 
 def chi2_quantile_2dof(level: float) -> float:

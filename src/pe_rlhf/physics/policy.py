@@ -1,6 +1,6 @@
 """The physics policy ``pi_phy``: IDM longitudinal + MOBIL lane changes + lane-keeping steering.
 
-It reads the simulator's state through :mod:`pe_rlhf.physics.perception` and returns
+It reads the simulator's state through :mod:`pe_rlhf.envs.perception` and returns
 the normalised ``[steering, throttle]`` action every other policy speaks. By default it is a
 *safe fallback*, as the authors' physics (MetaDrive's ``IDMPolicy``, whose leaders include static
 objects) is:
@@ -32,7 +32,7 @@ from pe_rlhf.envs.action import controls_to_action
 from pe_rlhf.envs.geometry import LANE_WIDTH
 from pe_rlhf.physics.idm import IDMParams, idm_acceleration
 from pe_rlhf.physics.mobil import LaneChangeAccelerations, MOBILParams, mobil_choose_lane
-from pe_rlhf.physics.perception import Neighbour, ego_lane_slot, leader_and_follower, neighbours
+from pe_rlhf.envs.perception import Neighbour, ego_lane_slot, leader_and_follower, neighbours
 
 # Lateral controller gains (highway-env's ControlledVehicle cascade).
 TAU_HEADING = 0.2  # [s]

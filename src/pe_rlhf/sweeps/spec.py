@@ -12,7 +12,7 @@
       selector.epsilon_select: [0, 0.25, 0.5]
     variants:                            # optional axis: label -> overrides (crossed with parameters)
       idm_only: [physics.use_mobil=false]
-    metrics: [success_rate, safety_violation]   # columns of summary.md (pe_rlhf.sweeps.summary.METRICS)
+    metrics: [success_rate, safety_violation]   # columns of summary.md (pe_rlhf.sweeps.metrics.METRICS)
     resources: {num_cpus: 1}             # per cell (Ray task); torch runs that many threads
 
 The grid is method x mentor x parameter x seed; a method without a mentor (``mentor_key: null``, e.g.
@@ -236,7 +236,7 @@ def _variants(parameters: Any, variants: Any) -> tuple[Variant, ...]:
 
 def parse_sweep(raw: Any, default_name: str = "sweep") -> SweepSpec:
     """A checked :class:`SweepSpec` from a loaded YAML mapping; raises :class:`SweepConfigError`."""
-    from pe_rlhf.sweeps.summary import DEFAULT_METRICS, METRICS
+    from pe_rlhf.sweeps.metrics import DEFAULT_METRICS, METRICS
 
     if not isinstance(raw, Mapping):
         raise SweepConfigError(f"sweep config must be a mapping of fields, got {type(raw).__name__}")

@@ -14,8 +14,7 @@ from __future__ import annotations
 import csv
 import json
 import math
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -23,71 +22,10 @@ import numpy as np
 
 from pe_rlhf.evaluation.statistics import interval_text, seed_stats
 from pe_rlhf.sweeps.cells import CELL_FILE, FINAL_EVAL, NONE, Cell, cell_dir
+from pe_rlhf.sweeps.metrics import (DEFAULT_METRICS, METRICS, NAN, Metric, last_csv_row,  # noqa: F401 (re-exported)
+                                    logged_metrics, metric_values)
 
-NAN = float("nan")
 SUMMARY_MD, SUMMARY_CSV, CELLS_CSV = "summary.md", "summary.csv", "cells.csv"
-
-
-@dataclass(frozen=True)
-class Metric:
-    """A summary column: its header, number format and how to read it from ``(final_eval, last_csv_row)``."""
-
-    label: str
-    fmt: str
-    read: Callable[[dict, dict], float]
-
-
-def _test(key: str) -> Callable[[dict, dict], float]:
-    return lambda final, last: float((final.get(key) or {}).get("mean", NAN))
-
-
-def logged_metrics(column: str, *training_keys: str) -> Callable[[dict, dict], float]:
-    """``column`` of the last metrics row, else the first of ``training_keys`` in ``final["training"]``."""
-    def read(final: dict, last: dict) -> float:
-        if column in last:
-            return float(last[column])
-        training = final.get("training") or {}
-        return next((float(training[k]) for k in training_keys if training.get(k) is not None), NAN)
-    return read
-
-
-METRICS: dict[str, Metric] = {
-    "success_rate": Metric("test success", ".2f", _test("success_rate")),
-    "safety_violation": Metric("test safety viol.", ".2f", _test("safety_violation")),
-    "episodic_return": Metric("test return", ".1f", _test("episodic_return")),
-    "route_completion": Metric("test route completion", ".2f", _test("route_completion")),
-    "travel_distance": Metric("test distance m", ".1f", _test("travel_distance")),
-    "travel_velocity": Metric("test velocity km/h", ".1f", _test("travel_velocity")),
-    "overtake_count": Metric("test overtakes", ".2f", _test("overtake_count")),
-    "train_safety_violations": Metric("train safety viol.", ".1f",
-                                      logged_metrics("train/safety_violations_total", "safety_violations")),
-    "takeover_data_usage": Metric("takeover data usage", ".2f", logged_metrics("train/takeover_data_usage")),
-    "value_takeover_rate": Metric("value-takeover rate", ".2f", logged_metrics("train/value_takeover_rate")),
-    "train_wall_minutes": Metric("train wall min", ".1f",
-                                 lambda final, last: float(last["wall_time"]) / 60 if "wall_time" in last else NAN),
-}
-DEFAULT_METRICS = ("success_rate", "safety_violation", "train_safety_violations", "takeover_data_usage",
-                   "value_takeover_rate")
-
-
-def last_csv_row(path: Path) -> dict[str, float]:
-    if not path.is_file():
-        return {}
-    from pe_rlhf.training.metrics_logger import read_metrics_csv
-
-    _, rows = read_metrics_csv(path)
-    return rows[-1] if rows else {}
-
-
-def metric_values(final: dict, last: dict, metrics: dict[str, Metric] = METRICS) -> dict[str, float]:
-    """Every metric's value from a ``final_eval.json`` dict and the last ``metrics.csv`` row (NaN where none)."""
-    values = {}
-    for key, metric in metrics.items():
-        try:
-            values[key] = metric.read(final, last)
-        except (TypeError, ValueError, AttributeError):
-            values[key] = NAN
-    return values
 
 
 def read_cell(directory: str | Path, metrics: dict[str, Metric] = METRICS) -> dict[str, float]:

@@ -39,7 +39,7 @@ from torchrl.objectives import SoftUpdate
 
 from pe_rlhf.envs.torchrl_env import make_env
 from pe_rlhf.mentors import Mentor, make_mentor
-from pe_rlhf.modules import QEnsemble, make_actor, make_qvalue
+from pe_rlhf.modules import QEnsemble
 from pe_rlhf.objectives import PERLHFLoss
 from pe_rlhf.physics import IDMMobilPolicy, SafetyForecastValue
 from pe_rlhf.transforms import (
@@ -49,6 +49,7 @@ from pe_rlhf.transforms import (
     TrafficDisturbanceCost,
 )
 from pe_rlhf.threads import thread_budget
+from pe_rlhf.training.model_builders import build_actor, build_loss, obs_dim  # noqa: F401 (re-exported)
 from pe_rlhf.training.value_expert import load_value_expert, parse_value_source
 
 OBS_DIM = 250  # the default world's observation (240 lidar beams); obs_dim(cfg) follows env.lidar_beams and env.lane_features
@@ -56,15 +57,6 @@ OBS_DIM = 250  # the default world's observation (240 lidar beams); obs_dim(cfg)
 # make_worker_env checks that the InterventionTransform is the env's last transform when there is a selector.
 # (HAIM-DRL's TrafficDisturbanceCost comes after it, and HAIM-DRL has no selector.)
 WORKER_ENSEMBLE_PATH = "env.transform[-1].selector.q_ensemble"
-
-
-def obs_dim(cfg) -> int:
-    """The observation size of ``cfg.env``'s world (the networks' input width)."""
-    from pe_rlhf.envs.observation import observation_size
-    from pe_rlhf.training.config import driving_config
-
-    world = driving_config(cfg)
-    return observation_size(world.lidar_beams, world.lane_features)
 
 
 def build_warmup_driver(cfg):
@@ -218,10 +210,6 @@ def make_worker_env(cfg, worker_index: int, num_workers: int, start_frames: int 
     return env
 
 
-def build_actor(cfg):
-    return make_actor(obs_dim(cfg), hidden=tuple(cfg.loss.hidden))
-
-
 def exploration_type(cfg) -> ExplorationType:
     """How the agent proposes actions while collecting (``collector.exploration``): ``random`` samples
     the TanhNormal policy (SAC's usual collection); ``deterministic`` proposes its mode, so the
@@ -304,28 +292,6 @@ def push_ensemble_weights(collector: BaseCollector, ensemble: QEnsemble | None) 
 def build_replay_buffer(cfg) -> TensorDictReplayBuffer:
     return TensorDictReplayBuffer(storage=LazyTensorStorage(int(cfg.replay_buffer.size)),
                                   batch_size=int(cfg.replay_buffer.batch_size))
-
-
-def build_loss(cfg, actor) -> tuple[PERLHFLoss, SoftUpdate]:
-    """``PERLHFLoss`` of ``cfg.loss``, with HAIM-DRL's disturbance critic when ``disturbance.enabled``."""
-    hidden, n = tuple(cfg.loss.hidden), obs_dim(cfg)
-    target_entropy = cfg.loss.target_entropy
-    disturbance = make_qvalue(n, hidden=hidden) if cfg.disturbance.enabled else None
-    loss = PERLHFLoss(
-        actor, make_qvalue(n, hidden=hidden), make_qvalue(n, hidden=hidden), disturbance,
-        num_qvalue_nets=int(cfg.loss.num_qvalue_nets),
-        gamma=float(cfg.loss.gamma), gap_coef=float(cfg.loss.gap_coef),
-        gap_margin=None if cfg.loss.gap_margin is None else float(cfg.loss.gap_margin), psi=float(cfg.loss.psi),
-        intervention_weight=float(cfg.loss.intervention_weight), cosine_cost=bool(cfg.loss.cosine_cost),
-        intervention_critic_action=str(cfg.loss.intervention_critic_action),
-        num_intervention_qvalue_nets=int(cfg.loss.num_intervention_qvalue_nets),
-        alpha_init=float(cfg.loss.alpha_init),
-        target_entropy=target_entropy if target_entropy == "auto" else float(target_entropy), action_dim=2,
-        disturbance_weight=float(cfg.loss.disturbance_weight),
-        num_disturbance_qvalue_nets=int(cfg.loss.num_disturbance_qvalue_nets),
-        failure_target=str(cfg.loss.failure_target),
-    )
-    return loss, SoftUpdate(loss, tau=float(cfg.loss.tau))
 
 
 def build_optimizers(cfg, loss: PERLHFLoss) -> dict[str, torch.optim.Optimizer]:

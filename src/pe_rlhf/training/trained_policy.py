@@ -12,7 +12,7 @@ from pathlib import Path
 
 import torch
 
-from pe_rlhf.training import builders
+from pe_rlhf.training import model_builders as builders
 
 
 def _baseline_method(run_dir: Path) -> str | None:
@@ -27,11 +27,10 @@ def _baseline_method(run_dir: Path) -> str | None:
 
 
 def _run_config(run_dir: Path):
-    method = _baseline_method(run_dir)
-    if method is not None:
-        from pe_rlhf.baselines.config import load_baseline_config
+    if _baseline_method(run_dir) is not None:  # saved whole by the run: read as written
+        from omegaconf import OmegaConf
 
-        return load_baseline_config(method, run_dir / "config.yaml", apply_profile=False)
+        return OmegaConf.load(run_dir / "config.yaml")
     from pe_rlhf.training.config import load_config
 
     return load_config(run_dir / "config.yaml", apply_profile=False)
@@ -52,15 +51,19 @@ def run_observation_size(run_dir: str | Path) -> int:
 
 def load_run_actor(run_dir: str | Path):
     """The trained actor of a run folder of either kind: :func:`load_actor` for a PE-RLHF/HACO/HAIM-DRL
-    run, :func:`pe_rlhf.baselines.load_baseline_actor` (its ``actor.pt``) for a baseline run."""
+    run; for a baseline run its ``actor.pt`` (``weights_only=True``) in :func:`pe_rlhf.modules.make_actor`
+    sized by its saved ``config.yaml`` (``loss.hidden``, the ``env`` group's observation)."""
     run_dir = Path(run_dir)
-    if _baseline_method(run_dir) is not None:
-        from pe_rlhf.baselines import load_baseline_actor
+    if _baseline_method(run_dir) is None:
+        return load_actor(run_dir)
+    from pe_rlhf.modules import make_actor
 
-        if not (run_dir / "actor.pt").exists():
-            raise FileNotFoundError(f"{run_dir}: the baseline run has no actor.pt (it has not finished)")
-        return load_baseline_actor(run_dir)
-    return load_actor(run_dir)
+    if not (run_dir / "actor.pt").exists():
+        raise FileNotFoundError(f"{run_dir}: the baseline run has no actor.pt (it has not finished)")
+    cfg = _run_config(run_dir)
+    actor = make_actor(builders.obs_dim(cfg), hidden=tuple(cfg.loss.hidden))
+    actor.load_state_dict(torch.load(run_dir / "actor.pt", weights_only=True, map_location="cpu"))
+    return actor
 
 
 def load_actor(run_dir: str | Path):

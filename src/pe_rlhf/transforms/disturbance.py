@@ -35,7 +35,7 @@ from torchrl.envs import Transform
 
 from pe_rlhf.envs.torchrl_env import unwrap
 from pe_rlhf.physics.idm import IDMParams, idm_acceleration
-from pe_rlhf.physics.perception import ego_lane_slot, neighbours, occupies
+from pe_rlhf.envs.perception import ego_lane_slot, neighbours, occupies
 
 PREDICTION_DT = 0.1  # [s] integration step of the IDM platoon prediction
 
