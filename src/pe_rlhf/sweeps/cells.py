@@ -17,7 +17,7 @@ import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
-from pe_rlhf.sweeps.methods import MethodSpec
+from pe_rlhf.sweeps.methods import PROXY_Q_RECIPES, MethodSpec, proxy_q_config_path
 from pe_rlhf.sweeps.spec import MentorSpec, SweepConfigError, SweepSpec, Variant, yaml_value
 
 NONE = "-"  # the label of an axis that does not apply to a cell
@@ -105,11 +105,10 @@ def check_cell_configs(cells: list[Cell]) -> None:
 
 def _load_config(cell: Cell):
     recipe = cell.method.recipe
-    if recipe in ("pe_rlhf", "haim_drl", "evaluate"):
-        from pe_rlhf.baselines.config import recipe_config_path
+    if recipe in (*PROXY_Q_RECIPES, "evaluate"):
         from pe_rlhf.training.config import load_config
 
-        cfg = load_config(recipe_config_path("haim_drl") if recipe == "haim_drl" else None, cell.overrides)
+        cfg = load_config(proxy_q_config_path("pe_rlhf" if recipe == "evaluate" else recipe), cell.overrides)
         _build_mentor(cfg)
         if recipe == "evaluate":
             from pe_rlhf.training.trainer import registered_policies

@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from pe_rlhf.sweeps.cells import FINAL_EVAL, Cell, attempt_argv, cell_dir, log_path, plan, write_record
+from pe_rlhf.sweeps.methods import PROXY_Q_RECIPES, proxy_q_config_path
 
 THREAD_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS")
 
@@ -55,11 +56,10 @@ def _output_to(path: Path):
 
 
 def _run_recipe(recipe: str, policy: str | None, argv: list[str], directory: Path) -> None:
-    if recipe in ("pe_rlhf", "haim_drl"):
-        from pe_rlhf.baselines.config import recipe_config_path
+    if recipe in PROXY_Q_RECIPES:
         from pe_rlhf.training import recipe as proxy_q
 
-        proxy_q.main(argv, config_path=recipe_config_path("haim_drl") if recipe == "haim_drl" else None)
+        proxy_q.main(argv, config_path=proxy_q_config_path(recipe))
     elif recipe == "evaluate":
         _evaluate_only(policy, argv, directory)
     else:

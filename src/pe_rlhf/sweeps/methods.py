@@ -1,6 +1,6 @@
 """Methods a sweep can run: each is a recipe entry plus the overrides that make it that method.
 
-A :class:`MethodSpec` says which entry point runs a cell (``pe_rlhf`` / ``haim_drl``: the proxy-Q recipe
+A :class:`MethodSpec` says which entry point runs a cell (``pe_rlhf`` / ``haco`` / ``haim_drl``: the proxy-Q recipe
 :func:`pe_rlhf.training.recipe.main` with that recipe's ``config.yaml``; a baseline name such as ``sac_rs``:
 :func:`pe_rlhf.baselines.main`; ``evaluate``: no training, the registered ``policy`` is evaluated on the
 recipe's test scenes), the overrides that turn the recipe into the method (HACO = PE-RLHF without physics
@@ -12,7 +12,15 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-PROXY_Q_RECIPES = ("pe_rlhf", "haim_drl")  # pe_rlhf.training.recipe.main with recipes/<name>/config.yaml
+PROXY_Q_RECIPES = ("pe_rlhf", "haco", "haim_drl")  # pe_rlhf.training.recipe.main with recipes/<name>/config.yaml
+
+
+def proxy_q_config_path(recipe: str):
+    """The config file of a proxy-Q recipe: None for ``pe_rlhf`` (the built-in defaults, equal to
+    ``recipes/pe_rlhf/config.yaml``), else ``recipes/<recipe>/config.yaml``."""
+    from pe_rlhf.baselines.config import recipe_config_path
+
+    return None if recipe == "pe_rlhf" else recipe_config_path(recipe)
 EVALUATE = "evaluate"
 
 

@@ -1,4 +1,4 @@
-"""The entry point shared by the proxy-Q recipes (``recipes/pe_rlhf``, ``recipes/haim_drl``): parse the
+"""The entry point shared by the proxy-Q recipes (``recipes/pe_rlhf``, ``recipes/haco``, ``recipes/haim_drl``): parse the
 command line, load the recipe's config, train, write the outputs, print the summary.
 
 Outputs in the run folder: ``config.yaml`` (resolved), ``metrics.csv``, ``checkpoints/``,

@@ -1,0 +1,26 @@
+"""HACO training recipe: PE-RLHF's proxy-Q learner, the mentor's takeovers executed as they come.
+
+    python recipes/haco/train.py [profile=cpu|smoke|paper] [group.key=value ...] [--out DIR]
+    python recipes/haco/train.py --resume DIR      # continue a killed run from its last checkpoint
+
+The PE-RLHF recipe (``recipes/pe_rlhf``) with ``physics.enabled=false selector.enabled=false``
+(``config.yaml`` beside this script): :class:`~pe_rlhf.transforms.InterventionTransform` without physics or
+selector, and the same :class:`~pe_rlhf.objectives.PERLHFLoss`. The ablation the paper compares PE-RLHF
+against. A bad value prints one line ``error: ...`` and exits 2; ``PE_RLHF_DEBUG=1`` shows the traceback.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from pe_rlhf.training import recipe
+
+CONFIG = Path(__file__).with_name("config.yaml")
+
+
+def main(argv: list[str] | None = None) -> dict:
+    return recipe.main(argv, config_path=CONFIG, description=__doc__.splitlines()[0])
+
+
+if __name__ == "__main__":
+    recipe.run_command_line(main)
