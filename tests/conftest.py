@@ -1,4 +1,9 @@
-"""Shared test setup: headless pygame and the src layout on the import path."""
+"""Shared test setup: headless pygame, the src layout and the shared helpers on the import path.
+
+Tests mirror the package layout: ``tests/<package>/`` for ``pe_rlhf.<package>``, ``tests/benchmarks/`` and
+``tests/examples/`` for the scripts, ``tests/reliability/`` for what survives what; tests of top-level modules
+(``durable``, ``filelock``, ``threads``, ``wrappers``) and of the layering sit here.
+"""
 
 from __future__ import annotations
 
@@ -12,6 +17,10 @@ os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
 _SRC = Path(__file__).resolve().parents[1] / "src"
 if _SRC.is_dir() and str(_SRC) not in sys.path:
     sys.path.insert(0, str(_SRC))
+# The shared helpers (_factories, _scripts, ...) for the tests in every sub-folder (tests/<package>/).
+_TESTS = str(Path(__file__).resolve().parent)
+if _TESTS not in sys.path:
+    sys.path.insert(0, _TESTS)
 
 
 import pytest  # noqa: E402

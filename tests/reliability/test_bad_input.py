@@ -1,7 +1,7 @@
 """Bad input fails at the start with the field, the value and what is allowed; checkpoints and datasets
 from another env config or version are refused with the mismatch named.
 
-(``tests/test_training_config.py`` checks a rule for every config field; here are the issue's cases
+(``tests/training/test_training_config.py`` checks a rule for every config field; here are the issue's cases
 end to end, through the recipe's command line.)"""
 
 from __future__ import annotations

@@ -19,7 +19,7 @@ unknown. ``loss="member"`` regresses each member to ``y`` (mean over members of 
 errors): every member is a Q estimate, they agree where the data pins them down and stay diverse
 where it does not (the usual ensemble / REDQ recipe), so the spread is usable by
 ``HybridActionSelector(variance_threshold=...)``. The means learned by both are comparably good.
-Measured on the toy contextual bandit of ``tests/test_q_ensemble.py`` (K=5, 300 steps, true
+Measured on the toy contextual bandit of ``tests/modules/test_q_ensemble.py`` (K=5, 300 steps, true
 Q = r): held-out MSE of the mean 0.031 ("mean") vs 0.045 ("member"), from 4.8 at init; per-member
 MSE 1.37 vs 0.054; member spread (std over k) on the data 1.06 vs 0.095 (0.08 at init: "mean"
 inflated it ~13x), off the data 4.6 vs 0.41. Both spreads grow off the data, but with "mean" the

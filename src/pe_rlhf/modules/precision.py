@@ -8,7 +8,7 @@ from autocast, so Q-values, the actor's ``loc``/``scale``, log-probabilities and
 fp32: a Q of 90 in bf16 would be rounded to the nearest 0.5, coarser than the TD errors that train
 it. Acting and evaluation stay fp32 (no autocast outside the update).
 
-``benchmarks/sac_vs_sb3.py`` measures the speed; ``tests/test_precision.py`` checks that bf16 updates
+``benchmarks/sac_vs_sb3.py`` measures the speed; ``tests/modules/test_precision.py`` checks that bf16 updates
 stay close to fp32 ones and still learn.
 """
 

@@ -68,7 +68,7 @@ def _rsample_log_prob(dist) -> tuple[torch.Tensor, torch.Tensor]:
     TorchRL's ``rsample_and_log_prob`` scores the pre-tanh value that made the action. Scoring the
     action afterwards (``log_prob(rsample())``) inverts the tanh of a value clamped at ``1 - 1e-6``:
     past a pre-tanh value of ~7.25 every draw is scored as 7.25, which halves the entropy of a
-    saturated actor and flips the sign of the gradient on its scale (tests/test_perlhf_loss.py).
+    saturated actor and flips the sign of the gradient on its scale (tests/objectives/test_perlhf_loss.py).
     """
     action, log_prob = compute_rsample_log_prob(dist)
     if log_prob.shape != action.shape[:-1]:  # per-dimension log-probs: sum them

@@ -37,7 +37,7 @@ RECIPES_ENV_VAR = "PE_RLHF_RECIPES"
 RECIPE_CONFIG = Path("pe_rlhf") / "config.yaml"  # relative to the recipes directory
 OPEN_GROUPS = ("env", "mentor.kwargs")  # free-form groups, checked by name in validate_config
 
-# The paper's values (spec §3). Keep equal to recipes/pe_rlhf/config.yaml (tests/test_training_config.py).
+# The paper's values (spec §3). Keep equal to recipes/pe_rlhf/config.yaml (tests/training/test_training_config.py).
 DEFAULTS: dict[str, Any] = {
     "seed": 0,
     "profile": "paper",

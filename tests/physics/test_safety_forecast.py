@@ -12,7 +12,7 @@ from pe_rlhf.training.builders import build_q_ensemble, build_selector
 from pe_rlhf.training.config import load_config
 from pe_rlhf.training.value_expert import parse_value_source
 from pe_rlhf.transforms import HybridActionSelector
-from test_physics_policy import add_obstacle, straight_env
+from _scenes import add_obstacle, straight_env
 
 THROTTLE = np.array([0.0, 1.0], np.float32)
 BRAKE = np.array([0.0, -1.0], np.float32)

@@ -26,8 +26,8 @@ from pe_rlhf.training.config import (
     validate_config,
 )
 
-RECIPE_YAML = Path(__file__).resolve().parents[1] / "recipes" / "pe_rlhf" / "config.yaml"
-HAIM_DRL_YAML = Path(__file__).resolve().parents[1] / "recipes" / "haim_drl" / "config.yaml"
+RECIPE_YAML = Path(__file__).resolve().parents[2] / "recipes" / "pe_rlhf" / "config.yaml"
+HAIM_DRL_YAML = Path(__file__).resolve().parents[2] / "recipes" / "haim_drl" / "config.yaml"
 GROUPS = ("env", "mentor", "physics", "selector", "collector", "replay_buffer", "optim", "loss", "disturbance",
           "logger", "eval", "checkpoint")
 
@@ -365,7 +365,7 @@ def test_configuration_reference_page_is_the_rules_own_table():
     from pe_rlhf.training.config import RULES, reference_table
 
     table = reference_table()
-    page = (Path(__file__).resolve().parents[1] / "docs" / "guide" / "configuration.md").read_text()
+    page = (Path(__file__).resolve().parents[2] / "docs" / "guide" / "configuration.md").read_text()
     assert table in page, "regenerate the table: python -c 'from pe_rlhf.training.config import reference_table; print(reference_table())'"
     assert len(table.splitlines()) == len(RULES) + 2
     assert "| `optim.lr` | `0.0001` | must be a finite number > 0 |" in table

@@ -20,7 +20,7 @@ import pe_rlhf
 from pe_rlhf.cli import SUBCOMMANDS, build_parser
 from pe_rlhf.cli import main as cli_main
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 RECIPES = sorted(p.parent.name for p in (ROOT / "recipes").glob("*/train.py"))
 ENV = {**os.environ, "PYTHONPATH": str(ROOT / "src"), "SDL_VIDEODRIVER": "dummy", "OMP_NUM_THREADS": "1"}
 ENV.pop("PE_RLHF_DEBUG", None)

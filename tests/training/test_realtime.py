@@ -11,7 +11,7 @@ import time
 import pytest
 import torch
 from tensordict import TensorDict
-from test_training_smoke import _load_recipe
+from _scripts import load_script
 
 from pe_rlhf.objectives.perlhf import make_transitions
 from pe_rlhf.training import builders
@@ -24,6 +24,10 @@ from pe_rlhf.training.config import ConfigError, load_config, save_config
 from pe_rlhf.transforms import RealtimePacing
 
 FRAME_COLUMNS = ("time/frame_ms_mean", "time/frame_jitter_ms_p95", "time/frame_jitter_ms_max")
+
+
+def _load_recipe():
+    return load_script("recipes/pe_rlhf/train.py", "pe_rlhf_recipe")
 
 
 # --------------------------------------------------------------------------- RealtimePacing

@@ -16,7 +16,7 @@ import types
 
 import pytest
 import torch
-from test_training_smoke import _load_recipe
+from _scripts import load_script
 from torchrl.collectors import Collector
 
 from pe_rlhf.training import builders
@@ -27,6 +27,10 @@ pytestmark = pytest.mark.usefixtures("one_thread_module")
 
 MULTISYNC = ["profile=smoke", "collector.backend=multisync", "collector.num_workers=2"]
 TOTAL_FRAMES = 300  # 6 batches of 50 (25 per worker)
+
+
+def _load_recipe():
+    return load_script("recipes/pe_rlhf/train.py", "pe_rlhf_recipe")
 
 
 @pytest.fixture(scope="module")

@@ -11,7 +11,7 @@ from pe_rlhf.training import builders
 from pe_rlhf.training.config import driving_config, load_config, method_name, to_container
 from pe_rlhf.transforms import InterventionTransform
 
-RECIPE_DIR = Path(__file__).resolve().parents[1] / "recipes" / "haco"
+RECIPE_DIR = Path(__file__).resolve().parents[2] / "recipes" / "haco"
 
 
 def test_the_recipe_is_the_sweeps_haco_and_builds_no_selector():

@@ -13,7 +13,7 @@ from pe_rlhf.training import builders
 from pe_rlhf.training.config import driving_config, load_config
 from pe_rlhf.transforms import InterventionTransform, TrafficDisturbanceCost
 
-RECIPE_DIR = Path(__file__).resolve().parents[1] / "recipes" / "haim_drl"
+RECIPE_DIR = Path(__file__).resolve().parents[2] / "recipes" / "haim_drl"
 
 
 def _load_recipe():

@@ -18,7 +18,7 @@ from pe_rlhf.sweeps.cells import CELL_FILE, FINAL_EVAL, attempt_argv, check_fold
 from pe_rlhf.sweeps.execution import run_cells
 from pe_rlhf.sweeps.summary import aggregate, cell_rows, mean_std, write_summary
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 SMOKE = ["profile=smoke"]
 
 

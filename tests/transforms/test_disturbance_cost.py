@@ -15,10 +15,10 @@ import numpy as np
 import pytest
 import torch
 from tensordict import TensorDict
-from test_physics_policy import (
+from _scenes import (
     EMPTY_STRAIGHT,
     LONG_ROAD_SEED,
-    _long_road_scene,
+    long_road_scene,
     add_car,
     place_ego,
 )
@@ -57,7 +57,7 @@ def scene_env(mentor: Mentor | None = None, **kwargs):
     in the middle lane at ``SPEED``; with a mentor, an ``InterventionTransform`` comes first."""
     env = make_env(DrivingConfig(**EMPTY_STRAIGHT))
     sim = unwrap(env)
-    sim._scenes[LONG_ROAD_SEED] = _long_road_scene(900.0)
+    sim._scenes[LONG_ROAD_SEED] = long_road_scene(900.0)
     if mentor is not None:
         env.append_transform(InterventionTransform(mentor))
     transform = TrafficDisturbanceCost(**kwargs)

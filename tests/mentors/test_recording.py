@@ -30,7 +30,7 @@ from pe_rlhf.mentors.recording import (
     record,
 )
 
-SRC = Path(__file__).resolve().parents[1] / "src"
+SRC = Path(__file__).resolve().parents[2] / "src"
 SHORT = DrivingConfig(horizon=40)  # short episodes (time limit) keep the multi-episode tests fast
 
 

@@ -9,7 +9,7 @@ import pytest
 from pe_rlhf.training import builders
 from pe_rlhf.training.config import ConfigError, load_config
 
-EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
 
 
 @pytest.fixture

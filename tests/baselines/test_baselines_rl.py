@@ -33,7 +33,7 @@ from pe_rlhf.training.metrics_logger import read_metrics_csv
 pytestmark = [pytest.mark.usefixtures("one_thread_module"),
               pytest.mark.filterwarnings("ignore::FutureWarning"), pytest.mark.filterwarnings("ignore::UserWarning")]
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 SMOKE_FRAMES = 300
 OUTPUTS = ("config.yaml", "metrics.csv", "final_eval.json", "learning_curves.png", "actor.pt")
 SIX_METRICS = ("episodic_return", "success_rate", "safety_violation", "travel_distance", "travel_velocity",

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_physics_policy import CAR_LENGTH, add_car, add_obstacle, long_road_env, place_ego
+from _scenes import CAR_LENGTH, add_car, add_obstacle, long_road_env, place_ego
 
 from pe_rlhf.envs import DrivingConfig, make_gym_env
 from pe_rlhf.envs.lane_summary import LANE_FEATURES, LANE_RANGE, lane_features
