@@ -35,7 +35,7 @@ from pe_rlhf.envs import DrivingConfig, scene_seeds
 from pe_rlhf.envs.torchrl_env import make_env, unwrap
 from pe_rlhf.evaluation.policies import make_policy
 from pe_rlhf.mentors import make_mentor
-from pe_rlhf.physics import IDMMobilPolicy, PhysicsConfig, SafetyForecastValue
+from pe_rlhf.physics import IDMMobilPolicy, PhysicsConfig, SafetyForecastConfig, SafetyForecastValue
 from pe_rlhf.training.value_expert import load_value_expert, parse_value_source
 from pe_rlhf.transforms import HybridActionSelector, InterventionTransform
 
@@ -73,22 +73,28 @@ def drive(mentor: str | None, scenes: list[int], split: str = "train", selector:
     for seed in tqdm(scenes, desc=progress, leave=False, disable=progress is None):
         agent.policy.reset()
         td = env.reset(scene_seed=int(seed))
-        steps = takeover = chosen = 0
+        steps = takeover = chosen = starts = switches = 0
+        previous = None  # the last takeover step's choice (mentor?), None outside a takeover
         while True:
             td = agent(td)
             td = env.step(td)
             nxt = td.get("next")
             steps += 1
             if transform is not None:
-                takeover += bool(nxt.get("intervention"))
-                chosen += bool(nxt.get("mentor_selected"))
+                taken, mentor_chosen = bool(nxt.get("intervention")), bool(nxt.get("mentor_selected"))
+                takeover += taken
+                chosen += mentor_chosen
+                starts += bool(nxt.get("intervention_start"))
+                switches += taken and previous is not None and mentor_chosen != previous
+                previous = mentor_chosen if taken else None
             if bool(nxt.get("done")):
                 break
             td = nxt.exclude("reward", "done", "terminated", "truncated")
         failed = bool(nxt.get("crash_vehicle") | nxt.get("crash_object") | nxt.get("out_of_road"))
         rows.append({"scene": int(seed), "success": bool(nxt.get("success")), "violation": failed,
                      "timeout": not failed and not bool(nxt.get("success")), "steps": steps,
-                     "takeover_steps": takeover, "mentor_steps": chosen})
+                     "takeover_steps": takeover, "mentor_steps": chosen, "takeovers": starts,
+                     "switches": switches})
     env.close()
     total_takeover = sum(r["takeover_steps"] for r in rows)
     return {"episodes": len(rows),
@@ -97,18 +103,25 @@ def drive(mentor: str | None, scenes: list[int], split: str = "train", selector:
             "timeout": float(np.mean([r["timeout"] for r in rows])),
             "takeover_share": total_takeover / max(sum(r["steps"] for r in rows), 1),
             "mentor_share": sum(r["mentor_steps"] for r in rows) / max(total_takeover, 1),
+            "switches_per_takeover": sum(r["switches"] for r in rows) / max(sum(r["takeovers"] for r in rows), 1),
             "per_episode": rows}
 
 
+def forecast_value(hold: float = 1.0) -> SafetyForecastValue:
+    """``selector.value=forecast`` with ``selector.forecast_hold=hold``."""
+    return SafetyForecastValue(SafetyForecastConfig(hold=hold))
+
+
 def measure(mentors: list[str], scenes: list[int], split: str, value: str, epsilons: list[float],
-            switch_margins: list[float | None], variance_threshold: float | None = None) -> list[dict]:
+            switch_margins: list[float | None], variance_threshold: float | None = None,
+            forecast_hold: float = 1.0) -> list[dict]:
     """Every row (see the module docstring) for every mentor, IDM-MOBIL alone once."""
     world = DrivingConfig(split=split, lane_features=True)
     kind, path = parse_value_source(value)
     if kind == "warmup":
         raise SystemExit("--value: a warm-up ensemble exists only inside a run; use expert, expert:PATH or "
                          "forecast")
-    ensemble = SafetyForecastValue() if kind == "forecast" else load_value_expert(path, world_obs_dim(world))
+    ensemble = forecast_value(forecast_hold) if kind == "forecast" else load_value_expert(path, world_obs_dim(world))
     results = [{"mentor": None, "row": "idm-mobil", **drive(None, scenes, split, world=world, progress="idm-mobil")}]
     for mentor in mentors:
         results.append({"mentor": mentor, "row": "as-is",
@@ -168,11 +181,12 @@ def margin_arg(text: str) -> float | None:
 
 
 def format_table(results: list[dict]) -> str:
-    lines = ["| mentor | row | success | violation | timeout | takeover share | mentor share |",
-             "|---|---|---|---|---|---|---|"]
+    lines = ["| mentor | row | success | violation | timeout | takeover share | mentor share | switches a takeover |",
+             "|---|---|---|---|---|---|---|---|"]
     for r in results:
         lines.append(f"| {r['mentor'] or '-'} | {r['row']} | {r['success']:.2f} | {r['violation']:.2f} | "
-                     f"{r['timeout']:.2f} | {r['takeover_share']:.2f} | {r['mentor_share']:.2f} |")
+                     f"{r['timeout']:.2f} | {r['takeover_share']:.2f} | {r['mentor_share']:.2f} | "
+                     f"{r.get('switches_per_takeover', 0.0):.2f} |")
     return "\n".join(lines)
 
 
@@ -185,6 +199,7 @@ def main(argv=None) -> list[dict]:
     parser.add_argument("--epsilons", type=float, nargs="+", default=[0.5, 1.5])
     parser.add_argument("--switch-margins", type=margin_arg, nargs="+", default=[None], help="none, a number, or inf")
     parser.add_argument("--variance-threshold", type=float, default=None)
+    parser.add_argument("--forecast-hold", type=float, default=1.0, help="selector.forecast_hold [s] with --value forecast")
     parser.add_argument("--takeover-rates", nargs="*", metavar="DRIVER", default=None,
                         help="instead: each mentor's takeover share watching these drivers (e.g. idm-mobil-oracle "
                              "idm-mobil idm-mobil-blind random)")
@@ -202,7 +217,7 @@ def main(argv=None) -> list[dict]:
                                                                        "idm-mobil-blind", "random"], scenes, args.split)
     else:
         results = measure(args.mentors, scenes, args.split, args.value, args.epsilons, args.switch_margins,
-                      args.variance_threshold)
+                      args.variance_threshold, args.forecast_hold)
     print(format_table(results))
     print(f"{len(scenes)} {args.split} scenes ({scenes[0]}-{scenes[-1]}), value {args.value}, "
           f"{time.time() - t:.0f} s", flush=True)

@@ -41,7 +41,7 @@ from pe_rlhf.envs.torchrl_env import make_env
 from pe_rlhf.mentors import Mentor, make_mentor
 from pe_rlhf.modules import QEnsemble
 from pe_rlhf.objectives import PERLHFLoss
-from pe_rlhf.physics import IDMMobilPolicy, SafetyForecastValue
+from pe_rlhf.physics import IDMMobilPolicy, SafetyForecastConfig, SafetyForecastValue
 from pe_rlhf.transforms import (
     HybridActionSelector,
     InterventionTransform,
@@ -131,7 +131,7 @@ def build_q_ensemble(cfg) -> QEnsemble | None:
         return None
     kind, path = parse_value_source(cfg.selector.value)
     if kind == "forecast":
-        return SafetyForecastValue()
+        return SafetyForecastValue(SafetyForecastConfig(hold=float(cfg.selector.forecast_hold)))
     if kind == "expert":
         return load_value_expert(path, obs_dim(cfg), max_members=int(cfg.selector.num_members))
     return QEnsemble(obs_dim(cfg), num_members=int(cfg.selector.num_members), hidden=tuple(cfg.selector.hidden))
