@@ -4,12 +4,15 @@ that place the ego, ``TrafficCar`` s and ``BrokenDownCar`` s. Lane slots: 0 = le
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
+import pytest
 
 from pe_rlhf.envs import DrivingConfig, make_gym_env
-from pe_rlhf.envs.blocks import ROAD_SPEED, RouteBuilder
+from pe_rlhf.envs.blocks import RouteBuilder
 from pe_rlhf.envs.route import Route
-from pe_rlhf.envs.scene import EGO_START, Scene, generate_scene
+from pe_rlhf.envs.scene import Scene
 from pe_rlhf.envs.traffic import BrokenDownCar, TrafficCar
 
 DT = 0.1  # [s] one policy step (policy_frequency = 10 Hz)
