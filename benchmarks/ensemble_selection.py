@@ -141,7 +141,7 @@ def warmup_rows(mentors: list[str], scenes: list[int], split: str, value: str, e
     kind, path = parse_value_source(value)
     if kind == "warmup":
         raise SystemExit("--warmup judges the warm-up: a value fitted on it cannot; use forecast or expert")
-    ensemble = SafetyForecastValue() if kind == "forecast" else load_value_expert(path, world_obs_dim(world))
+    ensemble = forecast_value() if kind == "forecast" else load_value_expert(path, world_obs_dim(world))
     results = []
     for mentor in mentors:
         results.append({"mentor": mentor, "row": "warmup", **drive(mentor, scenes, split, world=world, warmup=True,
@@ -186,7 +186,7 @@ def format_table(results: list[dict]) -> str:
     for r in results:
         lines.append(f"| {r['mentor'] or '-'} | {r['row']} | {r['success']:.2f} | {r['violation']:.2f} | "
                      f"{r['timeout']:.2f} | {r['takeover_share']:.2f} | {r['mentor_share']:.2f} | "
-                     f"{r.get('switches_per_takeover', 0.0):.2f} |")
+                     f"{r['switches_per_takeover']:.2f} |")
     return "\n".join(lines)
 
 

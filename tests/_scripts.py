@@ -15,3 +15,8 @@ def load_script(relative_path: str, name: str | None = None):
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
+
+
+def load_pe_rlhf_recipe():
+    """``recipes/pe_rlhf/train.py`` as a module (its ``main(argv)`` runs the recipe)."""
+    return load_script("recipes/pe_rlhf/train.py", "pe_rlhf_recipe")

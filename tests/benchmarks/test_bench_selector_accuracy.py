@@ -5,12 +5,12 @@ from __future__ import annotations
 import json
 
 import pytest
-from _scripts import load_script
+from _scripts import load_pe_rlhf_recipe, load_script
 
 
 def test_selector_accuracy_on_a_smoke_run(tmp_path):
     run = tmp_path / "run"
-    load_script("recipes/pe_rlhf/train.py", "pe_rlhf_recipe").main(
+    load_pe_rlhf_recipe().main(
         ["profile=smoke", "eval.video=false", "--out", str(run)])
     bench = load_script("benchmarks/selector_accuracy.py")
     out = tmp_path / "acc.json"
@@ -30,7 +30,7 @@ def test_selector_accuracy_on_a_smoke_run(tmp_path):
 
 def test_haco_run_is_refused(tmp_path):
     run = tmp_path / "haco"
-    load_script("recipes/pe_rlhf/train.py", "pe_rlhf_recipe").main(
+    load_pe_rlhf_recipe().main(
         ["profile=smoke", "eval.video=false", "physics.enabled=false", "selector.enabled=false", "--out", str(run)])
     bench = load_script("benchmarks/selector_accuracy.py")
     with pytest.raises(SystemExit, match="no ensemble"):

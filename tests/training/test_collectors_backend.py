@@ -16,7 +16,7 @@ import types
 
 import pytest
 import torch
-from _scripts import load_script
+from _scripts import load_pe_rlhf_recipe
 from torchrl.collectors import Collector
 
 from pe_rlhf.training import builders
@@ -27,10 +27,6 @@ pytestmark = pytest.mark.usefixtures("one_thread_module")
 
 MULTISYNC = ["profile=smoke", "collector.backend=multisync", "collector.num_workers=2"]
 TOTAL_FRAMES = 300  # 6 batches of 50 (25 per worker)
-
-
-def _load_recipe():
-    return load_script("recipes/pe_rlhf/train.py", "pe_rlhf_recipe")
 
 
 @pytest.fixture(scope="module")
@@ -135,7 +131,7 @@ def test_ray_kwargs_and_ensemble_push_without_ray(monkeypatch):
 
 
 def test_smoke_training_with_multisync_writes_finite_metrics(tmp_path):
-    final = _load_recipe().main(MULTISYNC + ["--out", str(tmp_path)])
+    final = load_pe_rlhf_recipe().main(MULTISYNC + ["--out", str(tmp_path)])
     with open(tmp_path / "metrics.csv") as f:
         rows = list(csv.DictReader(f))
     assert [int(float(r["step"])) for r in rows] == [50, 100, 150, 200, 250, 300]

@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 import torch
-from _scripts import load_script
+from _scripts import load_pe_rlhf_recipe
 from tensordict import TensorDict
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
@@ -50,7 +50,7 @@ def test_a_baseline_run_loads_as_the_warmup_driver(sac_run):
 
 
 def test_the_expert_drives_the_warmup_of_a_recipe_run(sac_run, tmp_path):
-    recipe = load_script("recipes/pe_rlhf/train.py", "pe_rlhf_recipe")
+    recipe = load_pe_rlhf_recipe()
     final = recipe.main(["profile=smoke", f"collector.warmup_policy={sac_run}", "--out", str(tmp_path)])
     assert final["training"]["frames"] == 300
     cfg = load_config(tmp_path / "config.yaml", apply_profile=False)

@@ -11,7 +11,7 @@ import time
 import pytest
 import torch
 from tensordict import TensorDict
-from _scripts import load_script
+from _scripts import load_pe_rlhf_recipe
 
 from pe_rlhf.objectives.perlhf import make_transitions
 from pe_rlhf.training import builders
@@ -24,10 +24,6 @@ from pe_rlhf.training.config import ConfigError, load_config, save_config
 from pe_rlhf.transforms import RealtimePacing
 
 FRAME_COLUMNS = ("time/frame_ms_mean", "time/frame_jitter_ms_p95", "time/frame_jitter_ms_max")
-
-
-def _load_recipe():
-    return load_script("recipes/pe_rlhf/train.py", "pe_rlhf_recipe")
 
 
 # --------------------------------------------------------------------------- RealtimePacing
@@ -220,7 +216,7 @@ def test_invalid_pacing_and_async_settings_name_the_field(overrides, field):
 
 
 def test_recipe_with_async_updates_and_pacing_logs_frame_times(tmp_path):
-    final = _load_recipe().main(["profile=smoke", "optim.async_updates=true", "collector.realtime_hz=50",
+    final = load_pe_rlhf_recipe().main(["profile=smoke", "optim.async_updates=true", "collector.realtime_hz=50",
                                  "eval.every_frames=0", "checkpoint.every_frames=150", "--out", str(tmp_path)])
     with open(tmp_path / "metrics.csv") as f:
         rows = list(csv.DictReader(f))

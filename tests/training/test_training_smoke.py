@@ -7,15 +7,11 @@ import json
 import math
 
 import pytest
-from _scripts import load_script
-
-
-def _load_recipe():
-    return load_script("recipes/pe_rlhf/train.py", "pe_rlhf_recipe")
+from _scripts import load_pe_rlhf_recipe
 
 
 def test_smoke_run_writes_every_output(tmp_path):
-    final = _load_recipe().main(["profile=smoke", "--out", str(tmp_path), "--compare", "idm-mobil"])
+    final = load_pe_rlhf_recipe().main(["profile=smoke", "--out", str(tmp_path), "--compare", "idm-mobil"])
     for name in ("config.yaml", "metrics.csv", "final_eval.json", "training_curves.png", "actor.pt",
                  "test_episode.gif"):
         assert (tmp_path / name).exists(), name
@@ -49,12 +45,12 @@ def test_smoke_run_writes_every_output(tmp_path):
 
 def test_unknown_compare_policy_fails_before_training(tmp_path, capsys):
     with pytest.raises(SystemExit):
-        _load_recipe().main(["profile=smoke", "--out", str(tmp_path), "--compare", "idm-mobl"])
+        load_pe_rlhf_recipe().main(["profile=smoke", "--out", str(tmp_path), "--compare", "idm-mobl"])
     assert "allowed" in capsys.readouterr().err and not (tmp_path / "metrics.csv").exists()
 
 
 def test_resume_continues_without_gap_or_repeat(tmp_path, capsys):
-    recipe = _load_recipe()
+    recipe = load_pe_rlhf_recipe()
     recipe.main(["profile=smoke", "collector.total_frames=200", "checkpoint.every_frames=100", "checkpoint.keep=2",
                  "--out", str(tmp_path)])
     assert (tmp_path / "checkpoints" / "ckpt_000000200").exists()
@@ -74,7 +70,7 @@ def test_resume_continues_without_gap_or_repeat(tmp_path, capsys):
 def test_amateur_fatigue_is_logged_and_grows_with_the_steps_it_controls(tmp_path):
     """``train/mentor_fatigue`` = ``min(1 + fatigue_rate * controlled_steps / 1000, cap)``: it never falls,
     and the steps the amateur held control in the run (at least every online takeover step) raised it."""
-    _load_recipe().main(["profile=smoke", "eval.video=false", "mentor.name=amateur",
+    load_pe_rlhf_recipe().main(["profile=smoke", "eval.video=false", "mentor.name=amateur",
                          "mentor.kwargs.fatigue_rate=2.0", "--out", str(tmp_path)])
     rows = list(csv.DictReader(open(tmp_path / "metrics.csv")))
     fatigue = [float(r["train/mentor_fatigue"]) for r in rows]
@@ -95,7 +91,7 @@ def test_refresh_on_all_data_feeds_online_transitions_to_the_ensemble(tmp_path):
     sizes = {}
     for data in ("warmup", "all"):
         out = tmp_path / data
-        _load_recipe().main(["profile=smoke", "eval.video=false", "selector.refresh_every=100",
+        load_pe_rlhf_recipe().main(["profile=smoke", "eval.video=false", "selector.refresh_every=100",
                              f"selector.refresh_data={data}", "--out", str(out)])
         cfg = load_config(out / "config.yaml", apply_profile=False)
         warmup = build_replay_buffer(cfg)
@@ -114,7 +110,7 @@ def test_the_same_seed_gives_the_same_metrics(tmp_path):
     runs = []
     for name in ("a", "b"):
         out = tmp_path / name
-        final = _load_recipe().main(["profile=smoke", "eval.video=false", "seed=3", "--out", str(out)])
+        final = load_pe_rlhf_recipe().main(["profile=smoke", "eval.video=false", "seed=3", "--out", str(out)])
         rows = list(csv.DictReader(open(out / "metrics.csv")))
         runs.append(([{k: v for k, v in r.items() if not k.startswith("time/") and k != "wall_time"} for r in rows],
                      final["success_rate"], final["episodic_return"]))
