@@ -165,10 +165,11 @@ def infer_label(source: Source) -> str:
     if final.get("method") or config.get("method"):
         name = final.get("method")
         if not name:
-            from pe_rlhf.baselines.config import METHODS
+            from pe_rlhf.algorithms import ALGORITHMS
 
-            key = str(config["method"])
-            name = METHODS[key].name if key in METHODS else key
+            key = str(config["method"])  # a baseline's recipe name, e.g. sac_rs
+            entry = ALGORITHMS.get(key.replace("_", "-"))
+            name = entry.display if entry else key
         mentor = mentor or _get(config, "data.mentor")
     elif "physics" in config or "selector" in config:
         from omegaconf import OmegaConf

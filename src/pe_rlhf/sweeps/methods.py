@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-PROXY_Q_RECIPES = ("pe_rlhf", "haco", "haim_drl")  # pe_rlhf.training.recipe.main with recipes/<name>/config.yaml
+from pe_rlhf.algorithms.names import EVALUATE, PROXY_Q_RECIPES
 
 
 def proxy_q_config_path(recipe: str):
@@ -21,7 +21,6 @@ def proxy_q_config_path(recipe: str):
     from pe_rlhf.baselines.config import recipe_config_path
 
     return None if recipe == "pe_rlhf" else recipe_config_path(recipe)
-EVALUATE = "evaluate"
 
 
 @dataclass(frozen=True)
@@ -44,34 +43,17 @@ class MethodSpec:
         return self.recipe != EVALUATE
 
 
-def _baselines() -> dict[str, MethodSpec]:
-    from pe_rlhf.baselines import METHODS
-
-    methods = {}
-    for key, method in METHODS.items():
-        if method.family == "hil":
-            mentor_key = "mentor.name"
-        elif method.family in ("offline", "gail"):
-            mentor_key = "data.mentor"  # the demonstrations' driver
-        else:
-            mentor_key = None
-        methods[key.replace("_", "-")] = MethodSpec(key.replace("_", "-"), key, mentor_key=mentor_key,
-                                                    seeded_mentor=mentor_key == "mentor.name")
-    return methods
-
-
 def builtin_methods() -> dict[str, MethodSpec]:
-    """The methods a sweep config may name without defining them."""
-    return {
-        "pe-rlhf": MethodSpec("pe-rlhf", "pe_rlhf"),
-        "haco": MethodSpec("haco", "pe_rlhf", ("physics.enabled=false", "selector.enabled=false")),
-        "haim-drl": MethodSpec("haim-drl", "haim_drl"),
-        "idm-mobil": MethodSpec("idm-mobil", EVALUATE, policy="idm-mobil", mentor_key=None, parameters=False),
-        **_baselines(),
-    }
+    """The methods a sweep config may name without defining them: one per entry of
+    :data:`pe_rlhf.algorithms.ALGORITHMS`, the one registry."""
+    from pe_rlhf.algorithms import ALGORITHMS
+
+    return {name: MethodSpec(name, a.recipe, a.overrides, policy=a.policy, mentor_key=a.mentor_key,
+                             parameters=a.trains, seeded_mentor=a.seeded_mentor)
+            for name, a in ALGORITHMS.items()}
 
 
 def recipe_names() -> tuple[str, ...]:
-    from pe_rlhf.baselines import METHODS
+    from pe_rlhf.algorithms import recipe_names as registered
 
-    return (*PROXY_Q_RECIPES, *METHODS, EVALUATE)
+    return registered()

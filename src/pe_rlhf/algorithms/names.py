@@ -1,0 +1,5 @@
+"""Names every layer above may use without importing a learner (this module imports nothing)."""
+
+PROXY_Q = "proxy_q"  # the family of the reward-free proxy-Q learners
+EVALUATE = "evaluate"  # the recipe (and family) of a fixed policy that is scored, not trained
+PROXY_Q_RECIPES = ("pe_rlhf", "haco", "haim_drl")  # pe_rlhf.training.recipe.main with recipes/<name>/config.yaml
