@@ -107,29 +107,34 @@ def drive(mentor: str | None, scenes: list[int], split: str = "train", selector:
             "per_episode": rows}
 
 
-def forecast_value(hold: float = 1.0) -> SafetyForecastValue:
-    """``selector.value=forecast`` with ``selector.forecast_hold=hold``."""
-    return SafetyForecastValue(SafetyForecastConfig(hold=hold))
+def forecast_value(hold: float = 1.0, recovery: str = "route", one_lane: bool = False) -> SafetyForecastValue:
+    """``selector.value=forecast`` with ``selector.forecast_hold=hold`` and ``selector.forecast_recovery=recovery``."""
+    return SafetyForecastValue(SafetyForecastConfig(hold=hold, recovery=recovery, hold_one_lane=one_lane))
 
 
 def measure(mentors: list[str], scenes: list[int], split: str, value: str, epsilons: list[float],
             switch_margins: list[float | None], variance_threshold: float | None = None,
-            forecast_hold: float = 1.0) -> list[dict]:
+            forecast_hold: float = 1.0, forecast_recovery: str = "route", veto_patience: int = 1,
+            imminent_failure: float | None = None, one_lane: bool = False) -> list[dict]:
     """Every row (see the module docstring) for every mentor, IDM-MOBIL alone once."""
     world = DrivingConfig(split=split, lane_features=True)
     kind, path = parse_value_source(value)
     if kind == "warmup":
         raise SystemExit("--value: a warm-up ensemble exists only inside a run; use expert, expert:PATH or "
                          "forecast")
-    ensemble = forecast_value(forecast_hold) if kind == "forecast" else load_value_expert(path, world_obs_dim(world))
+    ensemble = forecast_value(forecast_hold, forecast_recovery, one_lane) if kind == "forecast" \
+        else load_value_expert(path, world_obs_dim(world))
     results = [{"mentor": None, "row": "idm-mobil", **drive(None, scenes, split, world=world, progress="idm-mobil")}]
     for mentor in mentors:
         results.append({"mentor": mentor, "row": "as-is",
                         **drive(mentor, scenes, split, world=world, progress=f"{mentor} as-is")})
         for eps in epsilons:
             for margin in switch_margins:
-                selector = HybridActionSelector(ensemble, eps, variance_threshold, switch_margin=margin)
+                selector = HybridActionSelector(ensemble, eps, variance_threshold, switch_margin=margin,
+                                                veto_patience=veto_patience, imminent_failure=imminent_failure)
                 label = f"hybrid eps={eps:g} margin={'none' if margin is None else f'{margin:g}'}"
+                if veto_patience > 1:
+                    label += f" patience={veto_patience} imminent={imminent_failure}"
                 results.append({"mentor": mentor, "row": label, "epsilon_select": eps, "switch_margin": margin,
                                 **drive(mentor, scenes, split, selector, world=world, progress=f"{mentor} {label}")})
     return results
@@ -200,6 +205,14 @@ def main(argv=None) -> list[dict]:
     parser.add_argument("--switch-margins", type=margin_arg, nargs="+", default=[None], help="none, a number, or inf")
     parser.add_argument("--variance-threshold", type=float, default=None)
     parser.add_argument("--forecast-hold", type=float, default=1.0, help="selector.forecast_hold [s] with --value forecast")
+    parser.add_argument("--veto-patience", type=int, default=1, help="selector.veto_patience: consecutive vetoes "
+                        "before physics replaces the mentor")
+    parser.add_argument("--imminent-failure", type=float, default=None, help="selector.imminent_failure [s]: "
+                        "a veto acts at once where the mentor's action fails this soon")
+    parser.add_argument("--hold-one-lane", action="store_true", help="selector.forecast_hold_one_lane: the hold "
+                        "ends once the car has moved one lane width sideways")
+    parser.add_argument("--forecast-recovery", choices=["route", "lanes"], default="route",
+                        help="selector.forecast_recovery with --value forecast")
     parser.add_argument("--takeover-rates", nargs="*", metavar="DRIVER", default=None,
                         help="instead: each mentor's takeover share watching these drivers (e.g. idm-mobil-oracle "
                              "idm-mobil idm-mobil-blind random)")
@@ -217,7 +230,8 @@ def main(argv=None) -> list[dict]:
                                                                        "idm-mobil-blind", "random"], scenes, args.split)
     else:
         results = measure(args.mentors, scenes, args.split, args.value, args.epsilons, args.switch_margins,
-                      args.variance_threshold, args.forecast_hold)
+                      args.variance_threshold, args.forecast_hold, args.forecast_recovery,
+                          args.veto_patience, args.imminent_failure, args.hold_one_lane)
     print(format_table(results))
     print(f"{len(scenes)} {args.split} scenes ({scenes[0]}-{scenes[-1]}), value {args.value}, "
           f"{time.time() - t:.0f} s", flush=True)

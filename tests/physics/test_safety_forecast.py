@@ -113,3 +113,30 @@ def test_recipe_value_source_forecast():
     assert isinstance(value, SafetyForecastValue)
     selector = build_selector(cfg, value)
     assert selector.epsilon_select == 0.0
+
+
+def test_a_hold_of_one_lane_lets_a_lane_change_through():
+    """A lane-change steer held 1 s turns the car off the road; held only until it has crossed one lane, then
+    recovered, it is safe. Steering off the road from the outer lane still fails."""
+    env = at_speed(15.0)
+    steer = np.array([0.6, 0.0], np.float32)
+    assert time_to_failure(env, steer) < 1.0 + 1e-9
+    one_lane = SafetyForecastConfig(hold_one_lane=True, recovery="lanes")
+    assert time_to_failure(env, steer, one_lane) == pytest.approx(3.0)
+    assert time_to_failure(env, -steer, one_lane) == pytest.approx(3.0)  # either neighbour
+    env.vehicle.position = env.vehicle.position + 4.0 * np.array([-np.sin(env.vehicle.heading),
+                                                                    np.cos(env.vehicle.heading)])
+    assert time_to_failure(env, steer, one_lane) < 3.0  # from the outer lane, towards the edge
+
+
+def test_lane_recovery_is_never_worse_than_the_route_recovery_on_a_straight():
+    env = at_speed(20.0, obstacle_ahead=35.0)
+    for action in (THROTTLE, COAST, np.array([0.3, 0.5], np.float32), np.array([-0.3, 0.5], np.float32)):
+        route = time_to_failure(env, action, SafetyForecastConfig(hold=0.3))
+        lanes = time_to_failure(env, action, SafetyForecastConfig(hold=0.3, recovery="lanes"))
+        assert lanes >= route  # the lanes' best includes the current lane's centre
+
+
+def test_recovery_must_be_known():
+    with pytest.raises(ValueError, match="recovery='swerve'.*route"):
+        SafetyForecastConfig(recovery="swerve")

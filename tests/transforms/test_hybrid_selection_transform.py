@@ -156,3 +156,11 @@ def test_renamed_keys_and_the_wrong_order():
         HybridSelectionTransform(HybridActionSelector(SignValue()), in_keys=("action",))
     with pytest.raises(TypeError, match="needs a HybridActionSelector"):
         HybridSelectionTransform(SignValue())
+
+
+def test_a_patient_selector_is_refused_in_one_line():
+    from pe_rlhf.transforms import HybridActionSelector, HybridSelectionTransform
+
+    selector = HybridActionSelector(torch.nn.Identity(), veto_patience=3)
+    with pytest.raises(ValueError, match="veto_patience=3 is not supported here"):
+        HybridSelectionTransform(selector)

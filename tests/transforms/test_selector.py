@@ -180,3 +180,43 @@ def test_switch_margin_batched_previous():
 def test_invalid_switch_margin_raises(margin):
     with pytest.raises(ValueError, match="switch_margin"):
         HybridActionSelector(ExactQ(), switch_margin=margin)
+
+
+def _patient(patience=3, imminent=None):
+    return HybridActionSelector(ExactQ(), epsilon_select=0.0, veto_patience=patience, imminent_failure=imminent)
+
+
+def _step(sel, mentor_value, previous, physics_value=0.0):
+    _, chosen = sel.select(torch.zeros(OBS), _acts(mentor_value), _acts(physics_value), previous)
+    return bool(chosen.item())
+
+
+def test_a_patient_veto_replaces_the_mentor_only_after_consecutive_vetoes():
+    sel = _patient(3)
+    # mentor worse at every step: mentor, mentor, then physics from the third veto on
+    assert [_step(sel, -1.0, p) for p in (None, True, True, False, False)] == [True, True, False, False, False]
+    # a step where the mentor is not vetoed resets the count
+    assert [_step(sel, v, p) for v, p in ((-1.0, None), (-1.0, True), (1.0, True), (-1.0, True), (-1.0, True))] \
+        == [True, True, True, True, True]
+    # a new takeover (previous None) starts counting again
+    assert [_step(sel, -1.0, p) for p in (None, True)] == [True, True]
+
+
+def test_an_imminent_failure_is_vetoed_at_once():
+    sel = _patient(5, imminent=0.3)  # ExactQ's value of the mentor is its action's first entry
+    assert _step(sel, 0.2, None, physics_value=0.9) is False  # fails within 0.3: at once
+    assert _step(sel, 0.5, None, physics_value=0.9) is True  # vetoed, but not imminent: patience
+    assert _step(sel, 0.2, None, physics_value=0.1) is True  # imminent but not worse than physics: no veto
+
+
+def test_patience_one_is_every_step_alone():
+    sel, alone = _patient(1), HybridActionSelector(ExactQ(), epsilon_select=0.0)
+    for value, previous in ((-1.0, None), (-1.0, True), (1.0, False)):
+        assert _step(sel, value, previous) == _step(alone, value, previous)
+
+
+@pytest.mark.parametrize("kwargs", [{"veto_patience": 0}, {"veto_patience": 1.5}, {"veto_patience": True},
+                                    {"imminent_failure": float("nan")}, {"imminent_failure": "soon"}])
+def test_invalid_patience_raises(kwargs):
+    with pytest.raises(ValueError, match=next(iter(kwargs))):
+        HybridActionSelector(ExactQ(), **kwargs)

@@ -29,9 +29,17 @@ from highway_env import utils
 
 from pe_rlhf.envs.action import MAX_BRAKING, MAX_STEERING, action_to_controls
 from pe_rlhf.envs.driving_env import ROAD_EDGE_MARGIN  # the env's own off-road test, not a copy of it
+from pe_rlhf.envs.geometry import LANE_WIDTH
 
 NEAR = 60.0  # [m] road users farther than this cannot be reached within a forecast
 RECOVERY_STEERING_GAIN = 1.5  # [rad of wheel angle per rad of heading error] while recovering
+# The recoveries after the hold: "route" steers back along the route's heading (one recovery); "lanes" tracks
+# the centre of the lane the car is nearest to, or of either neighbour, and keeps the best (a lane change in
+# progress is finished or undone, whichever is safer).
+RECOVERIES = ("route", "lanes")
+LANE_TAU_LATERAL = 0.6  # [s] lateral-offset loop of the lane recovery (the privileged driver's)
+LANE_TAU_HEADING = 0.2  # [s] heading loop of the lane recovery
+LANE_MAX_HEADING_OFFSET = math.pi / 8  # [rad] largest angle to the lane taken to reach its centre
 
 
 @dataclass(frozen=True)
@@ -43,8 +51,12 @@ class SafetyForecastConfig:
     horizon: float = 3.0
     dt: float = 0.1
     recovery_braking: float = MAX_BRAKING
+    recovery: str = "route"
+    hold_one_lane: bool = False
 
     def __post_init__(self) -> None:
+        if self.recovery not in RECOVERIES:
+            raise ValueError(f"SafetyForecastConfig.recovery={self.recovery!r} is invalid: allowed {list(RECOVERIES)}")
         for name in ("hold", "horizon", "dt", "recovery_braking"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) \
@@ -77,43 +89,103 @@ def _others(env) -> list[tuple[np.ndarray, np.ndarray, float, float, float]]:
 
 def time_to_failure(env, action, config: SafetyForecastConfig | None = None) -> float:
     """Seconds until ``action`` (normalised ``[steering, throttle]``), held ``config.hold`` s and followed by
-    the best recovery, makes the ego of ``env`` (a ``DrivingEnv``, or a wrapper of one) hit a road user or
-    leave the road; ``config.horizon`` when it does neither. 0.0 when the ego already has."""
+    the best recovery (``config.recovery``), makes the ego of ``env`` (a ``DrivingEnv``, or a wrapper of one)
+    hit a road user or leave the road; ``config.horizon`` when it does neither. 0.0 when the ego already has."""
     config = config or SafetyForecastConfig()
     env = getattr(env, "unwrapped", env)
     ego = env.vehicle
+    forecast = _Forecast(env, config)
     steering, accel = action_to_controls(action)
-    position, heading, speed = np.array(ego.position, float), float(ego.heading), float(ego.speed)
-    half = ego.LENGTH / 2
-    others = _others(env)
-    network, route = env.road.network, env.route
-    segment = env.route_segment
-    steps = int(round(config.horizon / config.dt))
-    for i in range(1, steps + 1):
-        t = i * config.dt
-        if t > config.hold + 1e-9:  # recovery: brake, steer back along the route
-            segment, _ = route.project(position, segment)
-            error = utils.wrap_to_pi(route.heading_at(position, segment) - heading)
-            steering = float(np.clip(RECOVERY_STEERING_GAIN * error, -MAX_STEERING, MAX_STEERING))
-            accel = -config.recovery_braking
+    state = (np.array(ego.position, float), float(ego.heading), float(ego.speed), env.route_segment)
+    hold_steps = min(int(round(config.hold / config.dt)), forecast.steps)
+    lateral0 = env.route.lateral_offset(state[0], state[3]) if config.hold_one_lane else 0.0
+    for i in range(1, hold_steps + 1):
+        state = forecast.advance(state, steering, accel)
+        if forecast.failed(state, i):
+            return i * config.dt
+        if config.hold_one_lane:
+            segment, _ = env.route.project(state[0], state[3])
+            state = (state[0], state[1], state[2], segment)
+            if abs(env.route.lateral_offset(state[0], segment) - lateral0) >= LANE_WIDTH:
+                hold_steps = i  # one lane change done: a driver steers no further
+                break
+    if config.recovery == "route":
+        return forecast.recover(state, hold_steps, None)
+    k = state[3]
+    lat = env.route.lateral_offset(state[0], k)
+    nearest = int(np.clip(np.round(lat / LANE_WIDTH + env.route.lanes // 2), 0, env.route.lanes - 1))
+    slots = [s for s in (nearest, nearest - 1, nearest + 1) if 0 <= s < env.route.lanes]
+    best = 0.0
+    for slot in slots:
+        best = max(best, forecast.recover(state, hold_steps, slot))
+        if best >= config.horizon:
+            break
+    return best
+
+
+class _Forecast:
+    """One forecast's fixed context: the ego's size, the road users that can matter, the route."""
+
+    def __init__(self, env, config: SafetyForecastConfig):
+        self.env, self.config, self.ego = env, config, env.vehicle
+        self.others = _others(env)
+        self.steps = int(round(config.horizon / config.dt))
+        self.max_speed = float(getattr(self.ego, "MAX_SPEED", 40.0))
+
+    def advance(self, state, steering: float, accel: float):
+        """One ``dt`` of the kinematic bicycle (the simulator's equations)."""
+        position, heading, speed, segment = state
+        dt, half = self.config.dt, self.ego.LENGTH / 2
         beta = math.atan(0.5 * math.tan(steering))
-        position = position + speed * np.array([math.cos(heading + beta), math.sin(heading + beta)]) * config.dt
-        heading += speed * math.sin(beta) / half * config.dt
-        speed = min(max(speed + accel * config.dt, 0.0), float(getattr(ego, "MAX_SPEED", 40.0)))
-        if not network.is_on_road(position, ROAD_EDGE_MARGIN):
-            return t
+        position = position + speed * np.array([math.cos(heading + beta), math.sin(heading + beta)]) * dt
+        heading += speed * math.sin(beta) / half * dt
+        speed = min(max(speed + accel * dt, 0.0), self.max_speed)
+        return position, heading, speed, segment
+
+    def failed(self, state, i: int) -> bool:
+        """Whether the ego at ``state``, ``i`` steps ahead, is off the road or overlaps a road user."""
+        position, heading = state[0], state[1]
+        if not self.env.road.network.is_on_road(position, ROAD_EDGE_MARGIN):
+            return True
+        t, ego = i * self.config.dt, self.ego
         ego_corners = utils.rect_corners(position, ego.LENGTH, ego.WIDTH, heading)
-        for pos, vel, head, length, width in others:
+        for pos, vel, head, length, width in self.others:
             other = pos + vel * t
             if np.linalg.norm(other - position) > (length + ego.LENGTH) / 2 + (width + ego.WIDTH) / 2:
                 continue
-            if utils.are_polygons_intersecting(ego_corners,
-                                               utils.rect_corners(other, length, width, head),
+            if utils.are_polygons_intersecting(ego_corners, utils.rect_corners(other, length, width, head),
                                                np.zeros(2), np.zeros(2))[0]:
-                return t
-        if speed <= 0.0 and t > config.hold:
-            return config.horizon  # stopped on the road, clear of everything: nothing more can happen
-    return config.horizon
+                return True
+        return False
+
+    def recovery_steering(self, state, slot: int | None) -> float:
+        """Full braking's steering: back along the route (``slot`` None), or towards lane ``slot``'s centre."""
+        position, heading, speed, segment = state
+        route = self.env.route
+        ref = route.heading_at(position, segment)
+        if slot is not None:
+            target = (slot - route.lanes // 2) * LANE_WIDTH
+            error = route.lateral_offset(position, segment) - target
+            speed_c = max(speed, 2.0)
+            offset = math.asin(float(np.clip(-error / LANE_TAU_LATERAL / speed_c, -1, 1)))
+            ref += float(np.clip(offset, -LANE_MAX_HEADING_OFFSET, LANE_MAX_HEADING_OFFSET))
+            rate = utils.wrap_to_pi(ref - heading) / LANE_TAU_HEADING
+            slip = math.asin(float(np.clip(self.ego.LENGTH / 2 / speed_c * rate, -1, 1)))
+            return float(np.clip(math.atan(2 * math.tan(slip)), -MAX_STEERING, MAX_STEERING))
+        return float(np.clip(RECOVERY_STEERING_GAIN * utils.wrap_to_pi(ref - heading), -MAX_STEERING, MAX_STEERING))
+
+    def recover(self, state, start: int, slot: int | None) -> float:
+        """Seconds to a failure while recovering from ``state`` (step ``start`` of the forecast)."""
+        config = self.config
+        for i in range(start + 1, self.steps + 1):
+            segment, _ = self.env.route.project(state[0], state[3])
+            state = (state[0], state[1], state[2], segment)
+            state = self.advance(state, self.recovery_steering(state, slot), -config.recovery_braking)
+            if self.failed(state, i):
+                return i * config.dt
+            if state[2] <= 0.0:
+                return config.horizon  # stopped on the road, clear of everything: nothing more can happen
+        return config.horizon
 
 
 class SafetyForecastValue(torch.nn.Module):

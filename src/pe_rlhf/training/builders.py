@@ -131,7 +131,9 @@ def build_q_ensemble(cfg) -> QEnsemble | None:
         return None
     kind, path = parse_value_source(cfg.selector.value)
     if kind == "forecast":
-        return SafetyForecastValue(SafetyForecastConfig(hold=float(cfg.selector.forecast_hold)))
+        return SafetyForecastValue(SafetyForecastConfig(
+            hold=float(cfg.selector.forecast_hold), hold_one_lane=bool(cfg.selector.forecast_hold_one_lane),
+            recovery=str(cfg.selector.forecast_recovery)))
     if kind == "expert":
         return load_value_expert(path, obs_dim(cfg), max_members=int(cfg.selector.num_members))
     return QEnsemble(obs_dim(cfg), num_members=int(cfg.selector.num_members), hidden=tuple(cfg.selector.hidden))
@@ -151,9 +153,11 @@ def epsilon_select(cfg) -> float:
 
 
 def build_selector(cfg, ensemble: QEnsemble) -> HybridActionSelector:
-    margin = cfg.selector.switch_margin
+    margin, imminent = cfg.selector.switch_margin, cfg.selector.imminent_failure
     return HybridActionSelector(ensemble, epsilon_select(cfg), cfg.selector.variance_threshold,
-                                switch_margin=None if margin is None else float(margin))
+                                switch_margin=None if margin is None else float(margin),
+                                veto_patience=int(cfg.selector.veto_patience),
+                                imminent_failure=None if imminent is None else float(imminent))
 
 
 def build_train_env(cfg, env_config, mentor: Mentor, ensemble: QEnsemble | None, physics,

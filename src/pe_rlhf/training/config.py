@@ -32,6 +32,7 @@ from omegaconf.errors import OmegaConfBaseException
 from pe_rlhf.envs.config import DrivingConfig
 from pe_rlhf.modules.precision import PRECISIONS
 from pe_rlhf.objectives.perlhf import FAILURE_TARGETS
+from pe_rlhf.physics.safety import RECOVERIES
 
 RECIPES_ENV_VAR = "PE_RLHF_RECIPES"
 RECIPE_CONFIG = Path("pe_rlhf") / "config.yaml"  # relative to the recipes directory
@@ -45,7 +46,8 @@ DEFAULTS: dict[str, Any] = {
     "mentor": {"name": "professional", "seed": 0, "kwargs": {}},
     "physics": {"enabled": True, "see_obstacles": False, "stop_for_obstacles": True, "use_idm": True, "use_mobil": True},
     "selector": {"enabled": True, "value": "forecast", "epsilon_select": None, "variance_threshold": None,
-                 "switch_margin": None, "forecast_hold": 1.0, "warmup_selection": False, "num_members": 5,
+                 "switch_margin": None, "veto_patience": 1, "imminent_failure": None, "forecast_hold": 1.0,
+                 "forecast_hold_one_lane": False, "forecast_recovery": "route", "warmup_selection": False, "num_members": 5,
                  "hidden": [256, 256], "warmup_fit_steps": 3000, "refresh_every": 0, "refresh_steps": 500,
                  "refresh_data": "warmup",
                  "fit_loss": "mean", "target_noise": 0.1, "tau": 0.005, "lr": 3.0e-4, "batch_size": 256},
@@ -370,7 +372,9 @@ RULES: dict[str, Rule] = {
     "selector.refresh_steps": rule_int(0), "selector.fit_loss": rule_choice(*FIT_LOSSES),
     "selector.refresh_data": rule_choice(*REFRESH_DATA),
     "selector.value": _value_source, "selector.switch_margin": rule_optional(rule_number(0)),
-    "selector.forecast_hold": rule_number(0, 3),
+    "selector.forecast_hold": rule_number(0, 3), "selector.forecast_hold_one_lane": rule_bool,
+    "selector.forecast_recovery": rule_choice(*RECOVERIES), "selector.veto_patience": rule_int(1),
+    "selector.imminent_failure": rule_optional(rule_number()),
     "selector.warmup_selection": lambda v: None if v == "auto" or isinstance(v, bool) else "allowed: auto, true, false",
     "selector.target_noise": rule_number(0), "selector.tau": rule_number(0, 1, lo_open=True), "selector.lr": rule_number(0, lo_open=True),
     "selector.batch_size": rule_int(1),

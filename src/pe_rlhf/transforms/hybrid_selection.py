@@ -63,6 +63,10 @@ class HybridSelectionTransform(Transform):
                              f"{list(SELECTION_OUT_KEYS)} (got {out_keys})")
         if not isinstance(selector, HybridActionSelector):
             raise TypeError(f"HybridSelectionTransform needs a HybridActionSelector, got {type(selector).__name__}")
+        if selector.veto_patience > 1:
+            raise ValueError(f"HybridSelectionTransform: veto_patience={selector.veto_patience} is not supported here "
+                             "yet (the veto count lives in the selector, one takeover at a time); use "
+                             "InterventionTransform(mentor, selector, physics)")
         super().__init__(in_keys=in_keys, out_keys=out_keys)
         self.selector = selector
         self.action_key, self.observation_key, self.mentor_key, self.physics_key, self.intervention_key = in_keys

@@ -42,6 +42,15 @@ class HybridActionSelector(TensorDictModuleBase):
     physics to the mentor only when it reaches ``epsilon_select + switch_margin``. One step of braking
     costs little under an expert's continuation, so without it physics can win step after step behind an
     obstacle that the mentor was steering around.
+
+    ``veto_patience`` (1 by default: every step judged alone) lets the mentor keep the wheel through short
+    disagreements: physics replaces the mentor only once the value has vetoed it on ``veto_patience``
+    consecutive steps of a takeover (counted from ``select(..., previous=None)``, a takeover's start), or at
+    once where the mentor's own value is at most ``imminent_failure`` (with the forecast: its action fails within
+    that many seconds). A forecast that holds each action 1 s calls the sharpest steps of a lane change a failure
+    and hands the next step back; patience keeps such a manoeuvre whole. The count is state of this selector, for
+    one takeover at a time (``InterventionTransform``, ``InterventionWrapper``; batched inputs keep one count per
+    row).
     """
 
     def __init__(
@@ -50,6 +59,8 @@ class HybridActionSelector(TensorDictModuleBase):
         epsilon_select: float = 0.5,
         variance_threshold: float | None = None,
         switch_margin: float | None = None,
+        veto_patience: int = 1,
+        imminent_failure: float | None = None,
         observation_key: NestedKey = "observation",
         mentor_action_key: NestedKey = "mentor_action",
         physics_action_key: NestedKey = "physics_action",
@@ -69,6 +80,15 @@ class HybridActionSelector(TensorDictModuleBase):
         ):
             raise ValueError(f"switch_margin={switch_margin!r} must be a number >= 0 (inf: never switch), or None")
         self.switch_margin = None if switch_margin is None else float(switch_margin)
+        if isinstance(veto_patience, bool) or not isinstance(veto_patience, int) or veto_patience < 1:
+            raise ValueError(f"veto_patience={veto_patience!r} must be an integer >= 1 (1: every step judged alone)")
+        if imminent_failure is not None and (isinstance(imminent_failure, bool)
+                                             or not isinstance(imminent_failure, (int, float))
+                                             or not math.isfinite(imminent_failure)):
+            raise ValueError(f"imminent_failure={imminent_failure!r} must be a finite number, or None")
+        self.veto_patience = veto_patience
+        self.imminent_failure = None if imminent_failure is None else float(imminent_failure)
+        self._veto_streak: torch.Tensor | None = None
         self.q_ensemble = q_ensemble
         self.epsilon_select = float(epsilon_select)
         self.variance_threshold = variance_threshold
@@ -97,6 +117,8 @@ class HybridActionSelector(TensorDictModuleBase):
         q_mentor, q_phy = q.chunk(2, dim=1)
         advantage = (q_mentor - q_phy).mean(0)
         chosen = advantage >= self.epsilon_select
+        if self.veto_patience > 1:
+            chosen = self._patient(chosen, q_mentor.mean(0), previous)
         if self.switch_margin is not None and previous is not None:
             prev = torch.as_tensor(previous, dtype=torch.bool, device=advantage.device).reshape(advantage.shape)
             stay_mentor = advantage >= self.epsilon_select - self.switch_margin
@@ -111,6 +133,18 @@ class HybridActionSelector(TensorDictModuleBase):
             chosen = chosen.squeeze(0)
         hybrid = torch.where(chosen.unsqueeze(-1), mentor_action, physics_action)
         return hybrid, chosen.unsqueeze(-1)
+
+    def _patient(self, chosen: torch.Tensor, value_mentor: torch.Tensor, previous) -> torch.Tensor:
+        """Physics replaces the mentor only after ``veto_patience`` consecutive vetoes in a takeover, or at once
+        where the mentor's own value is at most ``imminent_failure``."""
+        veto = ~chosen
+        if previous is None or self._veto_streak is None or self._veto_streak.shape != veto.shape:
+            self._veto_streak = torch.zeros_like(veto, dtype=torch.long)
+        self._veto_streak = torch.where(veto, self._veto_streak + 1, torch.zeros_like(self._veto_streak))
+        replace = self._veto_streak >= self.veto_patience
+        if self.imminent_failure is not None:
+            replace = replace | (veto & (value_mentor <= self.imminent_failure))
+        return ~replace
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         obs, mentor, phy = (tensordict.get(k) for k in self.in_keys)
