@@ -334,5 +334,5 @@ def method_of(cfg: DictConfig) -> Method:
     return METHODS[str(cfg.method)]
 
 
-__all__ = ["METHODS", "PROFILE_NAMES", "RULES", "Method", "algorithm_name", "default_config", "load_baseline_config", "method_of",
-           "profiles", "recipe_config_path", "validate_baseline_config"]
+__all__ = ["METHODS", "PROFILE_NAMES", "RULES", "Method", "algorithm_name", "default_config", "load_baseline_config",
+           "method_of", "profiles", "recipe_config_path", "validate_baseline_config"]

@@ -226,13 +226,12 @@ def load_config(path: str | Path | None = None, overrides: Iterable[str] = (), *
     for group in OPEN_GROUPS:
         OmegaConf.set_struct(OmegaConf.select(cfg, group), False)
     path = Path(path) if path is not None else default_config_path()
+    recorded = None  # the method a run's saved config records (read_config_file)
     if path is not None:
         if not Path(path).is_file():
             raise ConfigError(f"config file {str(path)!r} not found")
         values, recorded = read_config_file(path)
         merge_values(cfg, values, f"config file {path}")
-    else:
-        recorded = None
     parsed = parse_overrides(overrides)
     profile = next((v.strip() for k, v in reversed(parsed) if k == "profile"), cfg.profile)
     if profile not in PROFILES:
