@@ -54,6 +54,20 @@ def test_proxy_q_overrides_make_the_method_they_name(name, expected):
     assert method_name(load_config(config, ["profile=smoke", *entry.overrides])) == expected
 
 
+def test_the_name_a_run_records_is_its_registry_name():
+    """What a run folder records (``algorithm``) is the key it is registered under, for every training method."""
+    from pe_rlhf.baselines.config import algorithm_name as baseline_name
+    from pe_rlhf.training.config import PROXY_Q_ALGORITHMS, algorithm_name, load_config
+
+    proxy_q = [a for a in ALGORITHMS.values() if a.family == PROXY_Q]
+    assert tuple(a.name for a in proxy_q) == PROXY_Q_ALGORITHMS
+    for entry in proxy_q:
+        config = None if entry.recipe == "pe_rlhf" else RECIPES / entry.recipe / "config.yaml"
+        assert algorithm_name(load_config(config, ["profile=smoke", *entry.overrides])) == entry.name
+    for key in METHODS:
+        assert ALGORITHMS[baseline_name(key)].recipe == key
+
+
 def test_an_unknown_name_is_one_line_naming_the_allowed():
     with pytest.raises(ValueError, match=r"'ppo' is not registered; allowed: \['pe-rlhf', 'haco'"):
         algorithm("ppo")

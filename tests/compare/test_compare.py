@@ -204,6 +204,21 @@ def test_label_inferred_from_config(tmp_path, config, final, label):
     assert infer_label(load_run(run)) == label
 
 
+@pytest.mark.parametrize("config, final, label", [
+    # the recorded registry name decides, whatever the switches say
+    ({"algorithm": "haco", **_proxy_q_config(physics=True, selector=True)}, {"algorithm": "haco"}, "HACO"),
+    ({"algorithm": "haim-drl", **_proxy_q_config(mentor="amateur")}, {}, "HAIM-DRL (amateur)"),  # config.yaml alone
+    (None, {"algorithm": "sac-lag"}, "SAC-Lag"),  # final_eval.json alone
+    ({"algorithm": "bc", "method": "bc", "data": {"mentor": "amateur"}}, {"algorithm": "bc", "method": "BC"},
+     "BC (amateur)"),
+    ({"algorithm": "pe-rlhf", **_proxy_q_config(disturbance=True)}, {"algorithm": "pe-rlhf"}, "PE-RLHF+disturbance"),
+    ({"algorithm": "pe-rlhf", **_proxy_q_config(physics=True, selector=False)}, {}, "PE-RLHF"),  # no guess to fail
+])
+def test_label_read_from_the_recorded_method(tmp_path, config, final, label):
+    run = make_run(tmp_path / "run", config, _final({"success_rate": 0.5}, **final))
+    assert infer_label(load_run(run)) == label
+
+
 def test_label_inference_failures_name_the_file(tmp_path):
     mixed = make_run(tmp_path / "mixed", _proxy_q_config(physics=True, selector=False), _final({"success_rate": 0.5}))
     with pytest.raises(CompareError, match=re.escape(str(mixed / "config.yaml"))):
@@ -377,3 +392,22 @@ def test_end_to_end_on_smoke_runs(smoke_runs, tmp_path, capsys):
     assert 0 < float(table["HACO"]["takeover_data_usage_mean"]) <= 1
     assert rows["BC"][2:4] == ["1.00", "200"]  # all of BC's data is the mentor's 200 recorded steps
     assert (tmp_path / "t" / "learning_curves.png").stat().st_size > 10_000
+
+
+def test_smoke_runs_record_their_method_and_old_run_folders_are_labelled_as_before(smoke_runs, tmp_path):
+    """Every run writes its registry name into final_eval.json and config.yaml; a folder from before that
+    record (both removed) gets the label the switches or the baseline's ``method`` give, the same one."""
+    import shutil
+
+    for run, name, label in ((smoke_runs / "pe" / "seed_0", "pe-rlhf", "PE-RLHF"),
+                             (smoke_runs / "haco" / "seed_0", "haco", "HACO"), (smoke_runs / "bc", "bc", "BC")):
+        final = json.loads((run / "final_eval.json").read_text())
+        config = yaml.safe_load((run / "config.yaml").read_text())
+        assert final["algorithm"] == config["algorithm"] == name
+        assert infer_label(load_run(run)) == label
+        old = shutil.copytree(run, tmp_path / run.name / name)
+        final.pop("algorithm")
+        config.pop("algorithm")
+        (old / "final_eval.json").write_text(json.dumps(final))
+        (old / "config.yaml").write_text(yaml.safe_dump(config))
+        assert infer_label(load_run(old)) == label

@@ -49,6 +49,23 @@ def test_a_baseline_run_loads_as_the_warmup_driver(sac_run):
     assert builders.build_warmup_driver(_cfg()) is None  # unset: the mentor drives
 
 
+def test_a_baseline_run_folder_without_the_method_record_still_loads(sac_run, tmp_path):
+    """A run folder written before runs recorded ``algorithm:`` is told a baseline's by its config's ``method``."""
+    import shutil
+
+    import yaml
+
+    config = yaml.safe_load((sac_run / "config.yaml").read_text())
+    assert config["algorithm"] == "sac-rs"
+    old = shutil.copytree(sac_run, tmp_path / "old")
+    del config["algorithm"]
+    (old / "config.yaml").write_text(yaml.safe_dump(config))
+    for run in (sac_run, old):
+        assert run_observation_size(run) == builders.obs_dim(_cfg())
+        for name, p in load_run_actor(run).state_dict().items():
+            assert torch.equal(p, load_baseline_actor(sac_run).state_dict()[name])
+
+
 def test_the_expert_drives_the_warmup_of_a_recipe_run(sac_run, tmp_path):
     recipe = load_pe_rlhf_recipe()
     final = recipe.main(["profile=smoke", f"collector.warmup_policy={sac_run}", "--out", str(tmp_path)])

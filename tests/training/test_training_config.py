@@ -16,6 +16,7 @@ from pe_rlhf.training.config import (
     PROFILES,
     RULES,
     ConfigError,
+    algorithm_name,
     default_config_path,
     driving_config,
     load_config,
@@ -102,6 +103,15 @@ def test_save_and_reload_round_trip(tmp_path):
     again = load_config(path, apply_profile=False)
     assert to_container(again) == to_container(cfg)
     assert isinstance(to_container(cfg)["loss"]["hidden"], list)
+
+
+def test_a_saved_config_records_the_method_and_refuses_values_that_contradict_it(tmp_path):
+    haco = load_config(overrides=["profile=smoke", "physics.enabled=false", "selector.enabled=false"])
+    path = save_config(haco, tmp_path / "config.yaml", algorithm_name(haco))
+    assert path.read_text().startswith("algorithm: haco\n")  # the registry name, first
+    assert to_container(load_config(path, apply_profile=False)) == to_container(haco)  # read apart from the values
+    with pytest.raises(ConfigError, match=r"^algorithm='haco' is invalid: the run folder's config describes 'pe-rlhf'"):
+        load_config(path, ["physics.enabled=true", "selector.enabled=true"], apply_profile=False)
 
 
 # --------------------------------------------------------------------------- profiles and overrides
@@ -290,6 +300,7 @@ def test_method_names():
     assert method_name(load_config(overrides=["selector.enabled=false", "physics.enabled=false",
                                               "disturbance.enabled=true"])) == "HAIM-DRL"
     assert method_name(load_config(overrides=["disturbance.enabled=true"])) == "PE-RLHF+disturbance"
+    assert algorithm_name(load_config(overrides=["disturbance.enabled=true"])) == "pe-rlhf"  # a PE-RLHF variant
 
 
 def test_haim_drl_recipe_is_haco_with_the_disturbance_cost():

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 
 from pe_rlhf.algorithms.names import EVALUATE, PROXY_Q, PROXY_Q_RECIPES
 from pe_rlhf.baselines.config import METHODS as BASELINE_METHODS
+from pe_rlhf.baselines.config import algorithm_name as baseline_algorithm_name
 
 
 @dataclass(frozen=True)
@@ -54,7 +55,7 @@ def _baseline(key: str) -> Algorithm:
         mentor_key = "data.mentor"  # the demonstrations' driver
     else:
         mentor_key = None
-    return Algorithm(key.replace("_", "-"), method.name, method.family, key, mentor_key=mentor_key)
+    return Algorithm(baseline_algorithm_name(key), method.name, method.family, key, mentor_key=mentor_key)
 
 
 ALGORITHMS: dict[str, Algorithm] = {

@@ -19,7 +19,7 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from pe_rlhf.baselines.config import METHODS, load_baseline_config
+from pe_rlhf.baselines.config import METHODS, algorithm_name, load_baseline_config
 from pe_rlhf.baselines.loop import train_baseline
 from pe_rlhf.baselines.plots import plot_baseline_curves
 from pe_rlhf.evaluation import write_json
@@ -56,7 +56,7 @@ def main(method: str, argv: list[str] | None = None) -> dict:
         cfg = load_baseline_config(method, overrides=args.overrides)
         out = run_dir(cfg, method, args.out)
         out.mkdir(parents=True, exist_ok=True)
-    save_config(cfg, out / "config.yaml")  # on --resume: with the overrides it continued under
+    save_config(cfg, out / "config.yaml", algorithm_name(method))  # on --resume: with the overrides it continued under
     lg = cfg.logger
     with MetricsLogger(out, csv=bool(lg.csv), wandb=bool(lg.wandb), wandb_mode=str(lg.wandb_mode),
                        wandb_project=str(lg.wandb_project), tensorboard=bool(lg.tensorboard), mlflow=bool(lg.mlflow),

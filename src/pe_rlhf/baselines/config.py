@@ -60,6 +60,8 @@ from pe_rlhf.training.config import (
     parse_overrides,
     rule_string,
     rule_target_entropy,
+    check_recorded_algorithm,
+    read_config_file,
 )
 
 
@@ -221,7 +223,9 @@ def load_baseline_config(method: str, path: str | Path | None = None, overrides=
     if path is not None:
         if not path.is_file():
             raise ConfigError(f"config file {str(path)!r} not found")
-        merge_values(cfg, OmegaConf.load(path), f"config file {path}")
+        values, recorded = read_config_file(path)
+        merge_values(cfg, values, f"config file {path}")
+        check_recorded_algorithm(recorded, algorithm_name(method))
     parsed = parse_overrides(overrides)
     profile = next((v.strip() for k, v in reversed(parsed) if k == "profile"), cfg.profile)
     if profile not in PROFILE_NAMES:
@@ -319,10 +323,16 @@ def _check_relations(cfg: DictConfig, m: Method) -> None:
                     f"must be <= collector.frames_per_batch ({c.frames_per_batch}): minibatches split each batch")
 
 
+def algorithm_name(method: str) -> str:
+    """The registry name (:data:`pe_rlhf.algorithms.ALGORITHMS`) of the baseline ``method`` (``sac_rs`` ->
+    ``sac-rs``), as its run folder records it."""
+    return method.replace("_", "-")
+
+
 def method_of(cfg: DictConfig) -> Method:
     """The :class:`Method` a validated config describes."""
     return METHODS[str(cfg.method)]
 
 
-__all__ = ["METHODS", "PROFILE_NAMES", "RULES", "Method", "default_config", "load_baseline_config", "method_of",
-           "profiles", "recipe_config_path", "validate_baseline_config"]
+__all__ = ["METHODS", "PROFILE_NAMES", "RULES", "Method", "algorithm_name", "default_config", "load_baseline_config",
+           "method_of", "profiles", "recipe_config_path", "validate_baseline_config"]

@@ -33,7 +33,7 @@ from torchrl.envs.utils import ExplorationType
 from tqdm import tqdm
 
 from pe_rlhf.baselines.algorithms import CPOLearner, PPOLearner, SACLearner
-from pe_rlhf.baselines.config import method_of
+from pe_rlhf.baselines.config import algorithm_name, method_of
 from pe_rlhf.baselines.episodes import EpisodeTracker, batch_log
 from pe_rlhf.envs.torchrl_env import make_env
 from pe_rlhf.threads import FreeCores, torch_threads
@@ -208,6 +208,7 @@ class BaselineRun:
             final = self.evaluate(int(self.cfg.eval.episodes))
         t = self.tracker
         final["method"] = self.method.name
+        final["algorithm"] = algorithm_name(str(self.cfg.method))
         final["training"] = {"env_steps": self.frames, "episodes": t.episodes, "safety_violations": t.safety_violations,
                              "success_rate": t.success_rate, "sim_errors": t.sim_errors,
                              "wall_time_s": self.wall_time(), **{f"{k}_s": v for k, v in self.seconds.items()}}

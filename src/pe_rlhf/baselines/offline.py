@@ -29,7 +29,7 @@ from torchrl.objectives import CQLLoss, SoftUpdate
 from tqdm import tqdm
 
 from pe_rlhf.baselines.algorithms import _NoTargets, _params, summarise
-from pe_rlhf.baselines.config import method_of
+from pe_rlhf.baselines.config import algorithm_name, method_of
 from pe_rlhf.baselines.demos import DEMO_KEYS, data_totals, demonstrations
 from pe_rlhf.baselines.imitation import WeightedBCLoss
 from pe_rlhf.modules import make_actor, make_qvalue
@@ -213,6 +213,7 @@ class OfflineRun:
             self.save()
         final = self.evaluate(int(self.cfg.eval.episodes))
         final["method"] = self.method.name
+        final["algorithm"] = algorithm_name(str(self.cfg.method))
         final["training"] = {"env_steps": 0, "updates": self.updates, "episodes": 0, "safety_violations": 0.0,
                              **self.totals, "mentor_data_total": self.totals["demo_steps"],
                              "mentor_data_share": 1.0, "wall_time_s": self.wall_time(),

@@ -17,10 +17,13 @@ Inferred labels that come out equal get the folder's (or file's) name appended (
 ``PE-RLHF (lanes_eps0b)``); labels given twice are an error.
 
 Label inference (:func:`infer_label`): an evaluation's ``policy`` (``idm-mobil`` -> ``IDM-MOBIL``; a
-sweep's evaluation-only cell is an evaluation row too); a baseline's ``final_eval.json`` / ``config.yaml`` ``method``
-(``SAC-RS``, ``BC``, ...); else the proxy-Q recipe's physics / selector / disturbance switches
-(:func:`pe_rlhf.training.config.method_name`: PE-RLHF, HACO, HAIM-DRL); a mentor other than the
-professional is appended (``PE-RLHF (amateur)``).
+sweep's evaluation-only cell is an evaluation row too); else the method the run recorded by its registry name
+(``"algorithm"`` in ``final_eval.json``, ``algorithm:`` in ``config.yaml``), shown by its
+:data:`~pe_rlhf.algorithms.ALGORITHMS` display name (``PE-RLHF``, ``SAC-RS``, ...; a PE-RLHF run with the
+disturbance critic is ``PE-RLHF+disturbance``). Run folders from before that record: a baseline's
+``final_eval.json`` / ``config.yaml`` ``method`` (``SAC-RS``, ``BC``, ...); else the proxy-Q recipe's physics /
+selector / disturbance switches (:func:`pe_rlhf.training.config.method_name`: PE-RLHF, HACO, HAIM-DRL). A
+mentor other than the professional is appended (``PE-RLHF (amateur)``).
 """
 
 from __future__ import annotations
@@ -162,7 +165,11 @@ def infer_label(source: Source) -> str:
         policy = str(policy)
         return "IDM-MOBIL" + policy[len("idm-mobil"):] if policy.startswith("idm-mobil") else policy
     mentor = _get(config, "mentor.name")
-    if final.get("method") or config.get("method"):
+    algorithm = final.get("algorithm") or config.get("algorithm")
+    if algorithm:
+        name = _recorded_label(str(algorithm), config)
+        mentor = mentor or _get(config, "data.mentor")
+    elif final.get("method") or config.get("method"):
         name = final.get("method")
         if not name:
             from pe_rlhf.algorithms import ALGORITHMS
@@ -186,6 +193,17 @@ def infer_label(source: Source) -> str:
         raise CompareError(f"{source.path}: cannot tell the method (no {CONFIG} with a method or physics/selector "
                            "groups); give the row a LABEL=")
     return name if mentor in (None, "professional") else f"{name} ({mentor})"
+
+
+def _recorded_label(algorithm: str, config: dict) -> str:
+    """The display name of a registry name a run recorded (an unknown one as it is)."""
+    from pe_rlhf.algorithms import ALGORITHMS
+
+    entry = ALGORITHMS.get(algorithm)
+    if entry is None:
+        return algorithm
+    variant = algorithm == "pe-rlhf" and bool(_get(config, "disturbance.enabled", False))
+    return entry.display + ("+disturbance" if variant else "")
 
 
 def _split_spec(spec: str) -> tuple[str | None, list[str]]:

@@ -37,6 +37,10 @@ from pe_rlhf.physics.safety import RECOVERIES
 RECIPES_ENV_VAR = "PE_RLHF_RECIPES"
 RECIPE_CONFIG = Path("pe_rlhf") / "config.yaml"  # relative to the recipes directory
 OPEN_GROUPS = ("env", "mentor.kwargs")  # free-form groups, checked by name in validate_config
+# A run's saved config.yaml records the run's method by its registry name (pe_rlhf.algorithms.ALGORITHMS) under
+# this top-level key; the loaders read it apart from the config values and check it against them.
+ALGORITHM_KEY = "algorithm"
+PROXY_Q_ALGORITHMS = ("pe-rlhf", "haco", "haim-drl")  # this recipe's methods, by registry name
 
 # The paper's values (spec §3). Keep equal to recipes/pe_rlhf/config.yaml (tests/training/test_training_config.py).
 DEFAULTS: dict[str, Any] = {
@@ -224,10 +228,12 @@ def load_config(path: str | Path | None = None, overrides: Iterable[str] = (), *
     for group in OPEN_GROUPS:
         OmegaConf.set_struct(OmegaConf.select(cfg, group), False)
     path = Path(path) if path is not None else default_config_path()
+    recorded = None  # the method a run's saved config records (read_config_file)
     if path is not None:
         if not Path(path).is_file():
             raise ConfigError(f"config file {str(path)!r} not found")
-        merge_values(cfg, OmegaConf.load(path), f"config file {path}")
+        values, recorded = read_config_file(path)
+        merge_values(cfg, values, f"config file {path}")
     parsed = parse_overrides(overrides)
     profile = next((v.strip() for k, v in reversed(parsed) if k == "profile"), cfg.profile)
     if profile not in PROFILES:
@@ -247,7 +253,24 @@ def load_config(path: str | Path | None = None, overrides: Iterable[str] = (), *
         _apply_human_defaults(cfg, given)
     if validate:
         validate_config(cfg)
+        check_recorded_algorithm(recorded, algorithm_name(cfg))
     return cfg
+
+
+def read_config_file(path: str | Path) -> tuple[dict[str, Any], str | None]:
+    """A config file's values, and apart from them the registry name a run recorded under :data:`ALGORITHM_KEY`
+    (None: a recipe's config, or a run folder written before runs recorded it)."""
+    values = OmegaConf.to_container(OmegaConf.load(path))
+    recorded = values.pop(ALGORITHM_KEY, None) if isinstance(values, dict) else None
+    return values, None if recorded is None else str(recorded)
+
+
+def check_recorded_algorithm(recorded: str | None, expected: str) -> None:
+    """Refuse a saved config whose recorded method is not the one its values describe (e.g. a HACO run folder
+    resumed with ``physics.enabled=true``)."""
+    if recorded is not None and recorded != expected:
+        raise invalid_value(ALGORITHM_KEY, recorded, f"the run folder's config describes {expected!r}; resume a "
+                            "run with the values it was started with")
 
 
 def _default(key: str) -> Any:
@@ -596,6 +619,12 @@ def method_name(cfg: DictConfig) -> str:
                 "'w/o ensemble' ablation")
 
 
+def algorithm_name(cfg: DictConfig) -> str:
+    """The registry name (:data:`pe_rlhf.algorithms.ALGORITHMS`) of the method ``cfg`` describes, as a run records
+    it: ``pe-rlhf``, ``haco`` or ``haim-drl`` (PE-RLHF with the disturbance critic is a ``pe-rlhf`` run)."""
+    return method_name(cfg).removesuffix("+disturbance").lower()
+
+
 def driving_config(cfg: DictConfig, **changes: Any) -> DrivingConfig:
     """The :class:`DrivingConfig` of ``cfg.env``, with ``changes`` on top (e.g. ``split="test"`` for eval)."""
     values = {**OmegaConf.to_container(cfg.env, resolve=True), **changes}
@@ -617,15 +646,19 @@ def to_container(cfg: DictConfig) -> dict[str, Any]:
     return OmegaConf.to_container(cfg, resolve=True)
 
 
-def save_config(cfg: DictConfig, path: str | Path) -> Path:
-    """Write ``cfg`` (resolved) as YAML; ``load_config(path, apply_profile=False)`` reads it back equal
-    (with the profile applied again, the profile's values would overwrite the saved overrides)."""
+def save_config(cfg: DictConfig, path: str | Path, algorithm: str | None = None) -> Path:
+    """Write ``cfg`` (resolved) as YAML, with ``algorithm`` (a run's registry name) first as the top-level
+    :data:`ALGORITHM_KEY`; ``load_config(path, apply_profile=False)`` reads it back equal (with the profile
+    applied again, the profile's values would overwrite the saved overrides)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    if algorithm is not None:
+        cfg = OmegaConf.create({ALGORITHM_KEY: algorithm, **to_container(cfg)})
     OmegaConf.save(cfg, path, resolve=True)
     return path
 
 
-__all__ = ["BACKENDS", "DEFAULTS", "HUMAN_DEFAULTS", "PROFILES", "RULES", "ConfigError", "default_config_path",
-           "driving_config", "load_config", "method_name", "physics_config", "save_config", "to_container",
+__all__ = ["ALGORITHM_KEY", "BACKENDS", "DEFAULTS", "HUMAN_DEFAULTS", "PROFILES", "PROXY_Q_ALGORITHMS", "RULES",
+           "ConfigError", "algorithm_name", "check_recorded_algorithm", "default_config_path", "driving_config",
+           "load_config", "method_name", "physics_config", "read_config_file", "save_config", "to_container",
            "validate_config"]

@@ -1,8 +1,8 @@
 """The entry point shared by the proxy-Q recipes (``recipes/pe_rlhf``, ``recipes/haco``, ``recipes/haim_drl``): parse the
 command line, load the recipe's config, train, write the outputs, print the summary.
 
-Outputs in the run folder: ``config.yaml`` (resolved), ``metrics.csv``, ``checkpoints/``,
-``final_eval.json``, ``training_curves.png``, ``actor.pt``, ``test_episode.gif`` (with ``eval.video``) and
+Outputs in the run folder: ``config.yaml`` (resolved, with the method's registry name as ``algorithm:``),
+``metrics.csv``, ``checkpoints/``, ``final_eval.json`` (with ``"algorithm"``), ``training_curves.png``, ``actor.pt``, ``test_episode.gif`` (with ``eval.video``) and
 ``reference_<policy>.json`` (with ``--compare``).
 
 Errors, for every recipe (the baselines' ``train.py`` too): a script runs its ``main`` through
@@ -23,7 +23,7 @@ from pathlib import Path
 
 from pe_rlhf.evaluation import print_summary, write_json
 from pe_rlhf.errors import OneLineErrorParser, debug_requested, fail
-from pe_rlhf.training.config import ConfigError, load_config, method_name, save_config, to_container
+from pe_rlhf.training.config import ConfigError, algorithm_name, load_config, method_name, save_config, to_container
 from pe_rlhf.training.metrics_logger import MetricsLogger
 from pe_rlhf.training.plots import plot_learning_curves
 from pe_rlhf.training.trainer import evaluate_reference, registered_policies, train
@@ -69,7 +69,7 @@ def main(argv: list[str] | None = None, *, config_path: str | Path | None = None
     if not args.resume:
         out = Path(args.out or cfg.logger.out_dir or f"runs/{method.lower()}-{time.strftime('%Y%m%d-%H%M%S')}")
         out.mkdir(parents=True, exist_ok=True)
-        save_config(cfg, out / "config.yaml")
+        save_config(cfg, out / "config.yaml", algorithm_name(cfg))
     with MetricsLogger(out, csv=bool(cfg.logger.csv), wandb=bool(cfg.logger.wandb), wandb_mode=str(cfg.logger.wandb_mode),
                        wandb_project=str(cfg.logger.wandb_project), tensorboard=bool(cfg.logger.tensorboard),
                        mlflow=bool(cfg.logger.mlflow),

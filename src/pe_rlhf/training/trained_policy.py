@@ -2,8 +2,10 @@
 warm-up, ``collector.warmup_policy``).
 
 A run folder is a PE-RLHF/HACO/HAIM-DRL run (``config.yaml`` of the recipe config) or a baseline run
-(``config.yaml`` with a top-level ``method``, e.g. ``sac_rs``); :func:`run_world` and :func:`load_run_actor`
-read both kinds.
+(``config.yaml`` of the baseline's config, with a top-level ``method``, e.g. ``sac_rs``); its ``config.yaml``
+records which by the method's registry name (``algorithm: pe-rlhf``, ``algorithm: sac-rs``); a run folder
+written before that record is a baseline's when its config names a ``method``. :func:`run_world` and
+:func:`load_run_actor` read both kinds.
 """
 
 from __future__ import annotations
@@ -20,9 +22,15 @@ def _baseline_method(run_dir: Path) -> str | None:
     PE-RLHF/HACO/HAIM-DRL run."""
     from omegaconf import OmegaConf
 
+    from pe_rlhf.training.config import ALGORITHM_KEY, PROXY_Q_ALGORITHMS
+
     if not (run_dir / "config.yaml").exists():
         raise FileNotFoundError(f"{run_dir} is not a training run folder (no config.yaml)")
-    method = OmegaConf.load(run_dir / "config.yaml").get("method")
+    config = OmegaConf.load(run_dir / "config.yaml")
+    algorithm = config.get(ALGORITHM_KEY)
+    if algorithm is not None:  # the run recorded its method: a baseline's registry name is its recipe's, dashed
+        return None if algorithm in PROXY_Q_ALGORITHMS else str(algorithm).replace("-", "_")
+    method = config.get("method")  # a run folder from before the record
     return None if method is None else str(method)
 
 

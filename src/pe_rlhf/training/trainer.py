@@ -49,7 +49,7 @@ from pe_rlhf.evaluation import TorchRLPolicyAdapter, evaluate
 from pe_rlhf.modules import EnsembleSchedule, fit_q_ensemble
 from pe_rlhf.threads import torch_threads
 from pe_rlhf.training import builders
-from pe_rlhf.training.config import method_name
+from pe_rlhf.training.config import algorithm_name, method_name
 from pe_rlhf.training.steps import batch_metrics, ensemble_transitions, relabel_warmup
 from pe_rlhf.transforms import InterventionTransform, RealtimePacing
 
@@ -435,6 +435,7 @@ class _Run:
         if self.checkpoint_dir is not None and c.frames > self.saved_step:
             self.save()
         final = evaluate_actor(self.cpu_actor, self.cfg, self.env_config, int(self.cfg.eval.episodes))
+        final["algorithm"] = algorithm_name(self.cfg)
         final["training"] = c.state_dict()
         torch.save({k: v.detach().cpu() for k, v in self.actor.state_dict().items()}, out_dir / "actor.pt")
         if self.cfg.eval.video:
