@@ -3,12 +3,14 @@
 An update is: forward on a batch, backward of the summed ``loss_*`` terms, an Adam step on all
 the loss module's parameters, and a ``SoftUpdate(tau=0.005)`` step. Both losses use the same
 networks (``make_actor`` / ``make_qvalue``, 256x256 MLPs), obs dim 250 (the real env's), batch
-1024, 2 critics; the PE-RLHF batch has ~25% takeover rows.
+1024, 2 critics; the PE-RLHF batch has ~25% takeover rows. PE-RLHF is timed twice: as shipped
+(``perlhf``: ``fused_critics=True``) and through its critic modules (``perlhf_modules``:
+``fused_critics=False``, the path before issue 20; ``--no-reference`` skips it).
 
-These machines are shared and noisy, so the two are interleaved update by update (ABBA order
+These machines are shared and noisy, so the losses are interleaved update by update (ABBA order
 in each round) on ``--threads`` threads, every update is timed on its own (wall and process CPU
 time), and the comparison uses medians: the median update of each loss over all rounds, and the
-median over rounds of the per-round ratio.
+median over rounds of the per-round ratio to SAC.
 
     python benchmarks/update_speed.py [--rounds 9] [--updates 4] [--precision fp32|bf16] [--json out.json]
 
