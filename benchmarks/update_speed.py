@@ -3,12 +3,14 @@
 An update is: forward on a batch, backward of the summed ``loss_*`` terms, an Adam step on all
 the loss module's parameters, and a ``SoftUpdate(tau=0.005)`` step. Both losses use the same
 networks (``make_actor`` / ``make_qvalue``, 256x256 MLPs), obs dim 250 (the real env's), batch
-1024, 2 critics; the PE-RLHF batch has ~25% takeover rows.
+1024, 2 critics; the PE-RLHF batch has ~25% takeover rows. PE-RLHF is timed twice: as shipped
+(``perlhf``: ``fused_critics=True``) and through its critic modules (``perlhf_modules``:
+``fused_critics=False``, the path before issue 20; ``--no-reference`` skips it).
 
-These machines are shared and noisy, so the two are interleaved update by update (ABBA order
+These machines are shared and noisy, so the losses are interleaved update by update (ABBA order
 in each round) on ``--threads`` threads, every update is timed on its own (wall and process CPU
 time), and the comparison uses medians: the median update of each loss over all rounds, and the
-median over rounds of the per-round ratio.
+median over rounds of the per-round ratio to SAC.
 
     python benchmarks/update_speed.py [--rounds 9] [--updates 4] [--precision fp32|bf16] [--json out.json]
 
@@ -72,15 +74,20 @@ class Updater:
 
 
 def build(obs_dim: int, hidden: tuple[int, ...], intervention_critics: int = 1,
-          precision: str = "fp32") -> dict[str, Updater]:
+          precision: str = "fp32", reference: bool = True) -> dict[str, Updater]:
+    """``sac``, ``perlhf`` (the default, fused critics) and, with ``reference``, ``perlhf_modules``
+    (``fused_critics=False``: one module call per critic and action set, the path before issue 20)."""
     torch.manual_seed(0)
     sac = SACLoss(make_actor(obs_dim, hidden=hidden), make_qvalue(obs_dim, hidden=hidden), num_qvalue_nets=2,
                   loss_function="l2", target_entropy=-float(ACTION_DIM))
-    torch.manual_seed(0)
-    perlhf = PERLHFLoss(make_actor(obs_dim, hidden=hidden), make_qvalue(obs_dim, hidden=hidden),
-                        make_qvalue(obs_dim, hidden=hidden), num_qvalue_nets=2, action_dim=ACTION_DIM,
-                        num_intervention_qvalue_nets=intervention_critics)
-    return {"sac": Updater(sac, precision=precision), "perlhf": Updater(perlhf, precision=precision)}
+    updaters = {"sac": Updater(sac, precision=precision)}
+    for name, fused in (("perlhf", True), ("perlhf_modules", False))[:2 if reference else 1]:
+        torch.manual_seed(0)
+        perlhf = PERLHFLoss(make_actor(obs_dim, hidden=hidden), make_qvalue(obs_dim, hidden=hidden),
+                            make_qvalue(obs_dim, hidden=hidden), num_qvalue_nets=2, action_dim=ACTION_DIM,
+                            num_intervention_qvalue_nets=intervention_critics, fused_critics=fused)
+        updaters[name] = Updater(perlhf, precision=precision)
+    return updaters
 
 
 class CountFlops(TorchDispatchMode):
@@ -145,13 +152,17 @@ def main(argv: list[str] | None = None) -> dict:
                              "2 = the authors' twin)")
     parser.add_argument("--precision", choices=["fp32", "bf16"], default="fp32",
                         help="bf16: the losses' forward under bf16 autocast, as optim.precision=bf16")
+    parser.add_argument("--no-reference", dest="reference", action="store_false",
+                        help="skip PERLHFLoss(fused_critics=False) (timed by default, interleaved with the others)")
     parser.add_argument("--json", default=None, help="write the results here")
     args = parser.parse_args(argv)
 
     warnings.filterwarnings("ignore", category=UserWarning)  # torchrl's target-updater notes
     torch.set_num_threads(args.threads)
     batch = make_batch(args.batch, args.obs_dim, args.intervention_rate)
-    updaters = build(args.obs_dim, (args.hidden, args.hidden), args.intervention_critics, args.precision)
+    updaters = build(args.obs_dim, (args.hidden, args.hidden), args.intervention_critics, args.precision,
+                     args.reference)
+    variants = [name for name in updaters if name != "sac"]
     for _ in range(args.warmup):
         for updater in updaters.values():
             updater.step(batch.copy())
@@ -160,7 +171,8 @@ def main(argv: list[str] | None = None) -> dict:
 
     wall: dict[str, list[list[float]]] = {name: [] for name in updaters}
     cpu: dict[str, list[list[float]]] = {name: [] for name in updaters}
-    ratios, cpu_ratios = [], []
+    ratios: dict[str, list[float]] = {name: [] for name in variants}
+    cpu_ratios: dict[str, list[float]] = {name: [] for name in variants}
     for r in range(args.rounds):
         for name in updaters:
             wall[name].append([])
@@ -173,43 +185,54 @@ def main(argv: list[str] | None = None) -> dict:
                 cpu[name][-1].append(c)
         med = {name: statistics.median(wall[name][-1]) for name in updaters}
         med_cpu = {name: statistics.median(cpu[name][-1]) for name in updaters}
-        ratios.append(med["perlhf"] / med["sac"])
-        cpu_ratios.append(med_cpu["perlhf"] / med_cpu["sac"])
-        print(f"round {r}: SAC {med['sac']:7.1f} ms  PE-RLHF {med['perlhf']:7.1f} ms  ratio {ratios[-1]:.2f}"
-              f"   (CPU time {med_cpu['sac']:.1f} / {med_cpu['perlhf']:.1f} ms, ratio {cpu_ratios[-1]:.2f})")
+        for name in variants:
+            ratios[name].append(med[name] / med["sac"])
+            cpu_ratios[name].append(med_cpu[name] / med_cpu["sac"])
+        print(f"round {r}: SAC {med['sac']:7.1f} ms" + "".join(
+            f"  {name} {med[name]:7.1f} ms ratio {ratios[name][-1]:.2f} (CPU {cpu_ratios[name][-1]:.2f})"
+            for name in variants))
 
     def overall(times: dict[str, list[list[float]]], name: str) -> float:
         return statistics.median(t for round_ in times[name] for t in round_)
 
-    sac_ms, perlhf_ms = overall(wall, "sac"), overall(wall, "perlhf")
+    ms = {name: overall(wall, name) for name in updaters}
+    achieved = {name: flops[name] / ms[name] / 1e6 for name in updaters}
     result = {
         "config": {k: v for k, v in vars(args).items() if k != "json"},
         "torch": torch.__version__,
         "actual_intervention_rate": float(batch["next", "intervention"].float().mean()),
-        "sac_ms_median": sac_ms,
-        "perlhf_ms_median": perlhf_ms,
-        "ratio_of_medians": perlhf_ms / sac_ms,
-        "ratio_median_of_rounds": statistics.median(ratios),
+        "sac_ms_median": ms["sac"],
+        "perlhf_ms_median": ms["perlhf"],
+        "ratio_of_medians": ms["perlhf"] / ms["sac"],
+        "ratio_median_of_rounds": statistics.median(ratios["perlhf"]),
         "sac_cpu_ms_median": overall(cpu, "sac"),
         "perlhf_cpu_ms_median": overall(cpu, "perlhf"),
-        "cpu_ratio_median_of_rounds": statistics.median(cpu_ratios),
+        "cpu_ratio_median_of_rounds": statistics.median(cpu_ratios["perlhf"]),
         "ratio_target": RATIO_TARGET,
         "gflop_per_update": {name: f / 1e9 for name, f in flops.items()},
         "flop_ratio": flops["perlhf"] / flops["sac"],
-        "achieved_gflops": {"sac": flops["sac"] / sac_ms / 1e6, "perlhf": flops["perlhf"] / perlhf_ms / 1e6},
+        "achieved_gflops": achieved,
         "matmul_ceiling_gflops": ceiling,
-        "share_of_ceiling": {"sac": flops["sac"] / sac_ms / 1e6 / ceiling[args.precision],
-                             "perlhf": flops["perlhf"] / perlhf_ms / 1e6 / ceiling[args.precision]},
-        "sac_ms_per_update": wall["sac"],
-        "perlhf_ms_per_update": wall["perlhf"],
+        "share_of_ceiling": {name: a / ceiling[args.precision] for name, a in achieved.items()},
+        **{f"{name}_ms_per_update": wall[name] for name in updaters},
     }
-    print(f"median: SAC {sac_ms:.1f} ms/update, PE-RLHF {perlhf_ms:.1f} ms/update, "
-          f"ratio {result['ratio_of_medians']:.2f}, median of per-round ratios {result['ratio_median_of_rounds']:.2f} "
-          f"(CPU time {result['cpu_ratio_median_of_rounds']:.2f}); target <= {RATIO_TARGET}")
-    print(f"work: SAC {result['gflop_per_update']['sac']:.2f} GFLOP, PE-RLHF {result['gflop_per_update']['perlhf']:.2f} "
-          f"GFLOP an update (x{result['flop_ratio']:.2f}); achieved {result['achieved_gflops']['sac']:.0f} / "
-          f"{result['achieved_gflops']['perlhf']:.0f} GFLOP/s against a {args.precision} matmul ceiling of "
-          f"{ceiling[args.precision]:.0f} GFLOP/s (fp32 {ceiling['fp32']:.0f}, bf16 {ceiling['bf16']:.0f})")
+    if "perlhf_modules" in updaters:  # the reference path, same run
+        result["reference"] = {
+            "perlhf_modules_ms_median": ms["perlhf_modules"],
+            "ratio_of_medians": ms["perlhf_modules"] / ms["sac"],
+            "ratio_median_of_rounds": statistics.median(ratios["perlhf_modules"]),
+            "cpu_ratio_median_of_rounds": statistics.median(cpu_ratios["perlhf_modules"]),
+            "flop_ratio": flops["perlhf_modules"] / flops["sac"],
+            "speedup_of_fused": ms["perlhf_modules"] / ms["perlhf"],
+        }
+    for name in variants:
+        print(f"median: SAC {ms['sac']:.1f} ms/update, {name} {ms[name]:.1f} ms/update, "
+              f"ratio {ms[name] / ms['sac']:.2f}, median of per-round ratios {statistics.median(ratios[name]):.2f} "
+              f"(CPU time {statistics.median(cpu_ratios[name]):.2f}); target <= {RATIO_TARGET}")
+    print("work: " + ", ".join(f"{name} {flops[name] / 1e9:.2f} GFLOP ({achieved[name]:.0f} GFLOP/s)"
+                                for name in updaters)
+          + f" an update; {args.precision} matmul ceiling {ceiling[args.precision]:.0f} GFLOP/s "
+          f"(fp32 {ceiling['fp32']:.0f}, bf16 {ceiling['bf16']:.0f})")
     if args.json:
         with open(args.json, "w") as f:
             json.dump(result, f, indent=2)

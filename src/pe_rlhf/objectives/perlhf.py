@@ -58,6 +58,8 @@ from torchrl.objectives.common import LossModule
 from torchrl.objectives.sac import compute_rsample_log_prob
 from torchrl.objectives.utils import _vmap_func
 
+from pe_rlhf.objectives.fused_critics import detached, evaluate, mlp_plan, project_state
+
 INTERVENTION_CRITIC_ACTIONS = ("agent", "behavior")
 FAILURE_TARGETS = ("zero", "bootstrap", "batch_min")
 
@@ -103,6 +105,11 @@ class PERLHFLoss(LossModule):
         num_disturbance_qvalue_nets: copies of ``Q_dist`` (default 2, a twin: HAIM-DRL's own twin critic).
         failure_target: ``"zero"``, ``"bootstrap"`` or ``"batch_min"``: the proxy-Q target of rows that
             end in a failure (module docstring).
+        fused_critics: ``True`` (default) evaluates ``make_qvalue`` critics from their stacked parameters
+            (:mod:`~pe_rlhf.objectives.fused_critics`): each state's first-layer product once for every
+            critic and every action it is valued at. The same values and gradients up to the order of a
+            float sum. Other critic modules, batches with a multi-dimensional observation and forwards
+            under autocast (``optim.precision=bf16``) go through the modules, as ``False`` always does.
 
     Default keys (``set_keys`` overrides): root ``observation`` (via the networks' in_keys),
     ``action`` = the agent's proposal ``a_AV`` float ``(..., A)``; under ``next`` (step outputs of the
@@ -167,6 +174,7 @@ class PERLHFLoss(LossModule):
         disturbance_weight: float = 1.0,
         num_disturbance_qvalue_nets: int = 2,
         failure_target: str = "zero",
+        fused_critics: bool = True,
     ) -> None:
         super().__init__()
         if failure_target not in FAILURE_TARGETS:
@@ -230,6 +238,11 @@ class PERLHFLoss(LossModule):
                                        num_disturbance_qvalue_nets, create_target_params=True)
             self._vmaps["q_dist"] = _vmap_func(self.disturbance_qvalue_network, (None, 0))
             self._critic_in_keys["q_dist"] = list(self.disturbance_qvalue_network.in_keys)
+        self.fused_critics = bool(fused_critics)
+        networks = {"q": "qvalue_network", "q_int": "intervention_qvalue_network",
+                    "q_dist": "disturbance_qvalue_network"}
+        plans = {c: mlp_plan(getattr(self, networks[c])) for c in self._vmaps} if self.fused_critics else {}
+        self._plans = {c: plan for c, plan in plans.items() if plan is not None}  # the critics fused_critics applies to
 
     @property
     def alpha(self) -> torch.Tensor:
@@ -264,6 +277,65 @@ class PERLHFLoss(LossModule):
             return start
         return tensordict.get(self.tensor_keys.intervention_cost).squeeze(-1).float() * start
 
+    # -- critic values -----------------------------------------------------------------------
+    def _params(self, critic: str, target: bool = False) -> TensorDictParams:
+        name = {"q": "qvalue_network_params", "q_int": "intervention_qvalue_network_params",
+                "q_dist": "disturbance_qvalue_network_params"}[critic]
+        return getattr(self, "target_" + name if target else name)
+
+    def _critic_values(self, tensordict: TensorDictBase, next_td: TensorDictBase, next_action: torch.Tensor,
+                       new_action: torch.Tensor, takeover: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Every critic value one update needs, ``(copies, rows)`` each: ``next_<c>`` (target critics at
+        ``(s', a')``, no grad), ``q`` (at the executed action on all rows, then at the agent's on the takeover
+        rows), ``q_int`` (at the agent's or executed action), ``q_dist`` (executed), and ``<c>_new`` (at the
+        new sample, critic parameters detached), for ``c`` in ``q``, ``q_int`` (and ``q_dist``)."""
+        keys = self.tensor_keys
+        behavior_action, agent_action = tensordict.get(keys.behavior_action), tensordict.get(keys.action)
+        actions = {"q": torch.cat([behavior_action, agent_action[takeover]], 0), "q_dist": behavior_action,
+                   "q_int": agent_action if self.intervention_critic_action == "agent" else behavior_action}
+        critics = ["q", "q_int"] + (["q_dist"] if self.has_disturbance_critic else [])
+        fused = [c for c in critics if self._fusable(c, tensordict)]
+        values = self._fused_values(fused, tensordict, next_td, next_action, new_action, takeover, actions)
+        modules = [c for c in critics if c not in fused]
+        with torch.no_grad():
+            for c in modules:
+                values["next_" + c] = self._q(c, self._params(c, target=True), next_td, next_action)
+        for c in modules:
+            td = tensordict
+            if c == "q":  # the takeover rows twice: once at the executed, once at the agent's action
+                state = tensordict.select(*self._critic_in_keys["q"], strict=False).exclude(keys.action)
+                td = torch.cat([state, state[takeover]], 0)
+            values[c] = self._q(c, self._params(c), td, actions[c])
+            values[c + "_new"] = self._q(c, self._params(c).detach(), tensordict, new_action)
+        return values
+
+    def _fusable(self, critic: str, tensordict: TensorDictBase) -> bool:
+        """Whether ``critic`` takes :mod:`~pe_rlhf.objectives.fused_critics`' path on this batch (docstring of
+        ``fused_critics``)."""
+        plan, keys = self._plans.get(critic), self.tensor_keys
+        if plan is None or plan.action_key != keys.action or plan.value_key != keys.state_action_value:
+            return False
+        observation = tensordict.get(plan.observation_key, None)
+        return (observation is not None and observation.dim() == 2
+                and not torch.is_autocast_enabled(observation.device.type))
+
+    def _fused_values(self, critics, tensordict, next_td, next_action, new_action, takeover, actions):
+        """:meth:`_critic_values` of ``critics`` from their stacked parameters: each state's product with a
+        critic's first layer once, reused for every action that state is valued at."""
+        values = {}
+        for c in critics:
+            plan = self._plans[c]
+            with torch.no_grad():
+                target = plan.read(self._params(c, target=True))
+                values["next_" + c] = evaluate(target, project_state(next_td.get(plan.observation_key), target),
+                                               next_action)
+            layers = plan.read(self._params(c))
+            part = project_state(tensordict.get(plan.observation_key), layers)
+            rows = torch.cat([part, part[:, takeover]], 1) if c == "q" else part
+            values[c] = evaluate(layers, rows, actions[c])
+            values[c + "_new"] = evaluate(detached(layers), part.detach(), new_action)
+        return values
+
     # -- the loss ----------------------------------------------------------------------------
     def forward(self, tensordict: TensorDictBase) -> TensorDict:
         keys = self.tensor_keys
@@ -273,14 +345,15 @@ class PERLHFLoss(LossModule):
         terminated = next_td.get(keys.terminated).squeeze(-1)
         not_terminal = 1.0 - terminated.float()
         failure = self.failures(tensordict)
-        agent_action = tensordict.get(keys.action)
-        behavior_action = tensordict.get(keys.behavior_action)
         intervention = tensordict.get(keys.intervention).squeeze(-1).float()
-
+        takeover = intervention.nonzero().squeeze(-1)
         with torch.no_grad():
             next_action, next_log_prob = self._sample(next_td)
-            next_q = self._q("q", self.target_qvalue_network_params, next_td, next_action).min(0)[0]
-            continuation = self.gamma * (next_q - self.alpha * next_log_prob)
+        new_action, log_prob = self._sample(tensordict)
+        values = self._critic_values(tensordict, next_td, next_action, new_action, takeover)
+
+        with torch.no_grad():
+            continuation = self.gamma * (values["next_q"].min(0)[0] - self.alpha * next_log_prob)
             if self.failure_target == "bootstrap":
                 target_q = (1.0 - (terminated & ~failure).float()) * continuation
             else:
@@ -289,17 +362,13 @@ class PERLHFLoss(LossModule):
                 target_q = target_q + next_td.get(keys.reward).squeeze(-1)
             if self.failure_target == "batch_min" and failure.any() and not failure.all():
                 target_q = torch.where(failure, target_q[~failure].min(), target_q)
-            next_q_int = self._q("q_int", self.target_intervention_qvalue_network_params,
-                                 next_td, next_action).min(0)[0]
-            target_q_int = self.intervention_cost(tensordict) + self.gamma * not_terminal * next_q_int
+            target_q_int = (self.intervention_cost(tensordict)
+                            + self.gamma * not_terminal * values["next_q_int"].min(0)[0])
 
         # Q at the executed action for every transition, and at the agent's action only where the
-        # mentor took over (the gap is zero elsewhere): one critic call on B + n_takeover rows.
-        state = tensordict.select(*self._critic_in_keys["q"], strict=False).exclude(keys.action)
-        takeover = intervention.nonzero().squeeze(-1)
-        q_all = self._q("q", self.qvalue_network_params, torch.cat([state, state[takeover]], 0),
-                        torch.cat([behavior_action, agent_action[takeover]], 0))
-        batch = behavior_action.shape[0]
+        # mentor took over (the gap is zero elsewhere): B + n_takeover rows.
+        q_all = values["q"]
+        batch = tensordict.shape[0]
         q_behavior, q_agent = q_all[:, :batch], q_all[:, batch:]
         loss_td = 0.5 * (q_behavior - target_q).pow(2).mean(-1).sum(0)
         q_failure = q_behavior.detach().mean(0)[failure].mean() if failure.any() else q_all.new_zeros(())
@@ -308,18 +377,14 @@ class PERLHFLoss(LossModule):
             gap = torch.relu(gap + self.gap_margin)
         loss_gap = self.gap_coef * gap.sum(-1).sum(0) / batch
 
-        int_action = agent_action if self.intervention_critic_action == "agent" else behavior_action
-        q_int = self._q("q_int", self.intervention_qvalue_network_params, tensordict, int_action)
+        q_int = values["q_int"]
         loss_q_int = 0.5 * (q_int - target_q_int).pow(2).mean(-1).sum(0)
 
-        new_action, log_prob = self._sample(tensordict)
-        q_new = self._q("q", self.qvalue_network_params.detach(), tensordict, new_action).min(0)[0]
-        q_int_new = self._q("q_int", self.intervention_qvalue_network_params.detach(),
-                            tensordict, new_action).min(0)[0]
-        actor_terms = self.alpha * log_prob - self.psi * q_new + self.intervention_weight * q_int_new
+        actor_terms = (self.alpha * log_prob - self.psi * values["q_new"].min(0)[0]
+                       + self.intervention_weight * values["q_int_new"].min(0)[0])
         disturbance = {}
         if self.has_disturbance_critic:
-            disturbance = self._disturbance_terms(tensordict, next_td, not_terminal, next_action, new_action)
+            disturbance = self._disturbance_terms(tensordict, not_terminal, values)
             actor_terms = actor_terms + self.disturbance_weight * disturbance.pop("q_dist_new")
         loss_actor = actor_terms.mean()
         loss_alpha = -(self.log_alpha * (log_prob.detach() + self.target_entropy)).mean()
@@ -345,22 +410,17 @@ class PERLHFLoss(LossModule):
             batch_size=[],
         )
 
-    def _disturbance_terms(self, tensordict: TensorDictBase, next_td: TensorDictBase, not_terminal: torch.Tensor,
-                           next_action: torch.Tensor, new_action: torch.Tensor) -> dict[str, torch.Tensor]:
+    def _disturbance_terms(self, tensordict: TensorDictBase, not_terminal: torch.Tensor,
+                           values: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         """HAIM-DRL's disturbance critic: its TD loss on the executed action, ``min_k Q_dist_k(s, a_new)``
         for the actor (critic parameters detached), and diagnostics. No sampling: the actions drawn for
         the proxy-Q target and the actor are reused, so every other term is unchanged by the option."""
         cost = tensordict.get(self.tensor_keys.disturbance_cost).squeeze(-1).float()
         with torch.no_grad():
-            next_q_dist = self._q("q_dist", self.target_disturbance_qvalue_network_params,
-                                  next_td, next_action).min(0)[0]
-            target = cost + self.gamma * not_terminal * next_q_dist
-        q_dist = self._q("q_dist", self.disturbance_qvalue_network_params, tensordict,
-                         tensordict.get(self.tensor_keys.behavior_action))
-        q_dist_new = self._q("q_dist", self.disturbance_qvalue_network_params.detach(),
-                             tensordict, new_action).min(0)[0]
+            target = cost + self.gamma * not_terminal * values["next_q_dist"].min(0)[0]
+        q_dist = values["q_dist"]
         return {"loss_disturbance_qvalue": 0.5 * (q_dist - target).pow(2).mean(-1).sum(0),
-                "q_dist_new": q_dist_new,
+                "q_dist_new": values["q_dist_new"].min(0)[0],
                 "q_disturbance": q_dist.detach().mean()}
 
 
