@@ -148,6 +148,11 @@ def test_only_recognised_critics_on_a_flat_batch_outside_autocast_are_fused():
     assert not make_loss(False)._fusable("q", batch)
     with torch.autocast("cpu", dtype=torch.bfloat16):  # bf16 keeps the modules' rounding
         assert not loss._fusable("q", batch)
-    images = TensorDict({"observation": torch.zeros(BATCH, 2, OBS_DIM // 2)}, [BATCH])
+    images = TensorDict({"observation": torch.zeros(BATCH, 2, OBS_DIM // 2), "action": torch.zeros(BATCH, 2)},
+                        [BATCH])
     assert not loss._fusable("q", images)
+    wider = batch.clone().set("observation", torch.zeros(BATCH, OBS_DIM + 1))
+    assert not loss._fusable("q", wider)  # a mismatched width goes to the module, which raises
+    with pytest.raises(RuntimeError):
+        loss(wider)
     loss(batch.clone())  # and the mixed loss runs

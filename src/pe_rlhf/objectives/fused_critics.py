@@ -35,12 +35,13 @@ Layers = list[tuple[torch.Tensor, torch.Tensor] | nn.Module]
 
 @dataclass(frozen=True)
 class MLPPlan:
-    """How to read a critic's stacked parameters: its keys, and its layers in order (a ``(weight key,
-    bias key)`` pair per linear layer, the module itself for an activation)."""
+    """How to read a critic's stacked parameters: its keys, its first layer's width ``obs + A``, and its layers
+    in order (a ``(weight key, bias key)`` pair per linear layer, the module itself for an activation)."""
 
     observation_key: NestedKey
     action_key: NestedKey
     value_key: NestedKey
+    in_features: int
     layers: tuple[tuple[tuple[str, ...], tuple[str, ...]] | nn.Module, ...]
 
     def read(self, params: TensorDictBase) -> Layers:
@@ -65,10 +66,11 @@ def mlp_plan(critic: TensorDictModule) -> MLPPlan | None:
             return None
     if not layers or isinstance(layers[0], nn.Module) or isinstance(layers[-1], nn.Module):
         return None
-    if [m for m in net.mlp.modules() if isinstance(m, nn.Linear)][-1].out_features != 1:
+    linear = [m for m in net.mlp.modules() if isinstance(m, nn.Linear)]
+    if linear[-1].out_features != 1:
         return None
     observation_key, action_key = critic.in_keys
-    return MLPPlan(observation_key, action_key, critic.out_keys[0], tuple(layers))
+    return MLPPlan(observation_key, action_key, critic.out_keys[0], linear[0].in_features, tuple(layers))
 
 
 def detached(layers: Layers) -> Layers:

@@ -315,8 +315,9 @@ class PERLHFLoss(LossModule):
         plan, keys = self._plans.get(critic), self.tensor_keys
         if plan is None or plan.action_key != keys.action or plan.value_key != keys.state_action_value:
             return False
-        observation = tensordict.get(plan.observation_key, None)
-        return (observation is not None and observation.dim() == 2
+        observation, action = tensordict.get(plan.observation_key, None), tensordict.get(keys.action, None)
+        return (observation is not None and action is not None and observation.dim() == 2
+                and observation.shape[-1] + action.shape[-1] == plan.in_features  # else the module raises
                 and not torch.is_autocast_enabled(observation.device.type))
 
     def _fused_values(self, critics, tensordict, next_td, next_action, new_action, takeover, actions):
