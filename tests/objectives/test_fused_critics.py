@@ -67,6 +67,7 @@ VARIANTS = {
     "default": {},
     "twin_q_int": {"num_intervention_qvalue_nets": 2},
     "behavior_q_int_hinge": {"intervention_critic_action": "behavior", "gap_margin": 0.5},
+    "policy_gap": {"gap_action": "policy"},
     "batch_min_reward": {"failure_target": "batch_min", "use_reward": True},
     "bootstrap_no_cosine": {"failure_target": "bootstrap", "cosine_cost": False},
     "disturbance": {"disturbance": True},

@@ -246,6 +246,29 @@ def test_hinge_gap_stops_once_the_agent_action_is_valued_a_margin_below():
     assert run(linear, batch)["gap_loss"] == pytest.approx(-35.0, rel=1e-5)  # the paper's gap keeps pushing
 
 
+def test_policy_gap_lowers_the_current_actors_action_not_the_stored_proposal():
+    # Q(s, a) = w * max(steer, 0): the gap's q_agent is w * (steer of whichever action it reads)^+.
+    batch = make_batch(intervention=1.0)
+    batch["next", "behavior_action"][:, 0] = -0.5
+    left, right = batch.clone(), batch.clone()
+    left["action"][:, 0], right["action"][:, 0] = -0.9, 0.9
+    stored = make_loss(critic(BehaviorSideQ(0.0)), critic(ConstantQ(0.0)))
+    current = make_loss(critic(BehaviorSideQ(0.0)), critic(ConstantQ(0.0)), gap_action="policy")
+    for loss in (stored, current):
+        set_online(loss.qvalue_network_params, "weight", [1.0, 2.0])
+    assert run(stored, left)["q_agent"] == 0
+    assert run(stored, right)["q_agent"] == pytest.approx(1.5 * 0.9, rel=1e-5)
+    # the fresh sample ignores the stored proposal: the same value whatever the agent proposed back then
+    from_left, from_right = run(current, left), run(current, right)
+    assert from_left["q_agent"] == from_right["q_agent"]
+    assert torch.equal(from_left["loss_qvalue"], from_right["loss_qvalue"])
+    assert 0 < from_left["q_agent"] < 1.5  # the untrained actor's samples: some steer right, none at full lock
+    # the sample is detached: the gap trains the critics, never the actor
+    from_left["loss_qvalue"].backward()
+    groups = grad_groups(current)
+    assert any(groups["qvalue_network_params"]) and not any(groups["actor_network_params"])
+
+
 def test_no_takeover_means_no_gap():
     loss = make_loss()
     out = run(loss, make_batch(intervention=0.0))
@@ -466,6 +489,7 @@ def test_multi_dimensional_batch_matches_the_flat_batch():
     ({"alpha_init": -1.0}, "alpha_init"),
     ({"num_qvalue_nets": 0}, "num_qvalue_nets"),
     ({"intervention_critic_action": "mentor"}, "intervention_critic_action"),
+    ({"gap_action": "mentor"}, "gap_action"),
     ({"target_entropy": "high"}, "target_entropy"),
     ({"target_entropy": math.nan}, "target_entropy"),
 ])

@@ -12,6 +12,12 @@ One update reads a batch of transitions ``(s, a_AV, a_exec, I, I_start, C_int, s
   linear gap has no minimum: the critic can always lower ``Q(s, a_AV)`` further, and through the
   TD target every value sinks with it (measured: ``Q(s, a_exec)`` drifting ~ -1 per 100 env steps
   when every warm-up step is a takeover, without settling). The hinge keeps the ranking and bounds it.
+  ``gap_action`` says which action ``a_AV`` the gap lowers: ``"agent"`` (the proposal stored when the row
+  was collected: the paper's and the authors' code) or ``"policy"`` (a fresh sample of the current actor,
+  detached: CQL's ``rho = pi``). The stored proposal keeps lowering the values of what an *earlier* policy
+  did in takeover states; once the actor has moved on, nothing lowers what it does now there, and values of
+  actions the data never holds (full-lock steering, say) can end up on top. The fresh sample follows the
+  actor. Same cost: the critic is evaluated at one action per takeover row either way.
 - ``loss_intervention_qvalue``: twin intervention critics,
   ``Q_int(s, a) <- C + gamma * (1 - terminated) * min_k Q_int'_k(s', a')`` with ``a`` the agent's
   action (the paper's equation; ``intervention_critic_action="behavior"`` trains on the executed
@@ -62,6 +68,7 @@ from pe_rlhf.objectives.fused_critics import detached, evaluate, mlp_plan, proje
 
 INTERVENTION_CRITIC_ACTIONS = ("agent", "behavior")
 FAILURE_TARGETS = ("zero", "bootstrap", "batch_min")
+GAP_ACTIONS = ("agent", "policy")
 
 
 def _rsample_log_prob(dist) -> tuple[torch.Tensor, torch.Tensor]:
@@ -94,6 +101,8 @@ class PERLHFLoss(LossModule):
         psi, intervention_weight: the actor's weights on ``Q`` and ``Q_int`` (``beta``); 0 turns off
             "intervention minimisation".
         gap_margin: ``None`` (the paper's linear gap) or a margin ``m >= 0`` for the hinge gap (see above).
+        gap_action: ``"agent"`` (default: the stored proposal, the paper) or ``"policy"`` (a fresh sample of
+            the current actor): the action whose value the gap lowers on takeover rows (see above).
         cosine_cost: ``False`` charges a constant 1 at each takeover start ("w/o cosine similarity").
         use_reward: add the env reward to the proxy-Q target (a reward-using variant; default off).
         intervention_critic_action: ``"agent"`` (the paper) or ``"behavior"``.
@@ -175,8 +184,12 @@ class PERLHFLoss(LossModule):
         num_disturbance_qvalue_nets: int = 2,
         failure_target: str = "zero",
         fused_critics: bool = True,
+        gap_action: str = "agent",
     ) -> None:
         super().__init__()
+        if gap_action not in GAP_ACTIONS:
+            raise ValueError(f"PERLHFLoss gap_action={gap_action!r} is invalid; allowed: {list(GAP_ACTIONS)}")
+        self.gap_action = gap_action
         if failure_target not in FAILURE_TARGETS:
             raise ValueError(f"PERLHFLoss failure_target={failure_target!r} is invalid; allowed: {list(FAILURE_TARGETS)}")
         self.failure_target = failure_target
@@ -291,7 +304,8 @@ class PERLHFLoss(LossModule):
         new sample, critic parameters detached), for ``c`` in ``q``, ``q_int`` (and ``q_dist``)."""
         keys = self.tensor_keys
         behavior_action, agent_action = tensordict.get(keys.behavior_action), tensordict.get(keys.action)
-        actions = {"q": torch.cat([behavior_action, agent_action[takeover]], 0), "q_dist": behavior_action,
+        gap_action = agent_action if self.gap_action == "agent" else new_action.detach()
+        actions = {"q": torch.cat([behavior_action, gap_action[takeover]], 0), "q_dist": behavior_action,
                    "q_int": agent_action if self.intervention_critic_action == "agent" else behavior_action}
         critics = ["q", "q_int"] + (["q_dist"] if self.has_disturbance_critic else [])
         fused = [c for c in critics if self._fusable(c, tensordict)]

@@ -42,7 +42,7 @@ def build_loss(cfg, actor) -> tuple[PERLHFLoss, SoftUpdate]:
         target_entropy=target_entropy if target_entropy == "auto" else float(target_entropy), action_dim=2,
         disturbance_weight=float(cfg.loss.disturbance_weight),
         num_disturbance_qvalue_nets=int(cfg.loss.num_disturbance_qvalue_nets),
-        failure_target=str(cfg.loss.failure_target),
+        failure_target=str(cfg.loss.failure_target), gap_action=str(cfg.loss.gap_action),
     )
     return loss, SoftUpdate(loss, tau=float(cfg.loss.tau))
 
