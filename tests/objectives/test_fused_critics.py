@@ -157,3 +157,15 @@ def test_only_recognised_critics_on_a_flat_batch_outside_autocast_are_fused():
     with pytest.raises(RuntimeError):
         loss(wider)
     loss(batch.clone())  # and the mixed loss runs
+
+
+def test_the_recipe_field_reaches_the_loss():
+    """``loss.fused_critics`` (default true) in the recipe config picks the path of the loss it builds."""
+    from pe_rlhf.training import builders
+    from pe_rlhf.training.config import load_config
+
+    for value, expected in (("true", True), ("false", False)):
+        cfg = load_config(overrides=["profile=smoke", f"loss.fused_critics={value}"])
+        loss, _ = builders.build_loss(cfg, builders.build_actor(cfg))
+        assert loss.fused_critics is expected and bool(loss._plans) is expected
+    assert load_config(overrides=["profile=smoke"]).loss.fused_critics is True

@@ -65,7 +65,7 @@ DEFAULTS: dict[str, Any] = {
              "cosine_cost": True, "intervention_critic_action": "agent", "num_qvalue_nets": 2,
              "num_intervention_qvalue_nets": 1, "target_entropy": "auto", "alpha_init": 1.0,
              "hidden": [256, 256], "disturbance_weight": 1.0, "num_disturbance_qvalue_nets": 2,
-             "failure_target": "batch_min", "gap_action": "agent"},
+             "failure_target": "batch_min", "gap_action": "agent", "fused_critics": True},
     "disturbance": {"enabled": False, "threshold": 5.0, "horizon": 3.0, "follower_range": 60.0},
     "logger": {"out_dir": None, "csv": True, "wandb": False, "wandb_mode": "offline",
                "wandb_project": "pe-rlhf", "tensorboard": False, "mlflow": False, "log_every": 1},
@@ -419,6 +419,7 @@ RULES: dict[str, Rule] = {
     "loss.target_entropy": rule_target_entropy, "loss.alpha_init": rule_number(0, lo_open=True), "loss.hidden": rule_hidden,
     "loss.disturbance_weight": rule_number(0), "loss.num_disturbance_qvalue_nets": rule_int(1),
     "loss.failure_target": rule_choice(*FAILURE_TARGETS), "loss.gap_action": rule_choice(*GAP_ACTIONS),
+    "loss.fused_critics": rule_bool,
     "disturbance.enabled": rule_bool, **{f"disturbance.{k}": rule_number(0, lo_open=True)
                                       for k in ("threshold", "horizon", "follower_range")},
     "logger.out_dir": rule_optional(rule_string), **{f"logger.{k}": rule_bool for k in ("csv", "wandb", "tensorboard", "mlflow")},

@@ -43,6 +43,7 @@ def build_loss(cfg, actor) -> tuple[PERLHFLoss, SoftUpdate]:
         disturbance_weight=float(cfg.loss.disturbance_weight),
         num_disturbance_qvalue_nets=int(cfg.loss.num_disturbance_qvalue_nets),
         failure_target=str(cfg.loss.failure_target), gap_action=str(cfg.loss.gap_action),
+        fused_critics=bool(cfg.loss.fused_critics),
     )
     return loss, SoftUpdate(loss, tau=float(cfg.loss.tau))
 
