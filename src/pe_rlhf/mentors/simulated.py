@@ -114,7 +114,11 @@ class SkillProfile:
 # within the first 2K warm-up steps and stayed there.
 PRESETS: dict[str, SkillProfile] = {
     "professional": SkillProfile(action_noise=0.01),
-    "amateur": SkillProfile(action_noise=0.08, reaction_delay=3, error_rate=0.06, fatigue_rate=0.1,
+    # Errors start with probability error_rate a step and last 3-10 steps, so the share of steps inside one is
+    # ~ 6.5 r / (1 + 6.5 r). At 0.06 (before 2026-12-03) that was 27% of the amateur's steps fresh and 51% at full
+    # fatigue (12-19% hard braking; train scenes 0-9): labels a learner cannot use (HACO crawled, 0.30 with 25
+    # timeouts). At 0.01: 5.5% fresh, 15% at full fatigue (hard braking 2.8% / 7.9%), alone 0.80 / 1.00 success.
+    "amateur": SkillProfile(action_noise=0.08, reaction_delay=3, error_rate=0.01, fatigue_rate=0.1,
                             speed_factor=0.95),
     # Adversarial where it is decided, in its executed actions: its danger seeks grab the wheel. With IDM-MOBIL
     # driving and its takeovers executed as they come (train scenes 0-9): 0.01 and seeks that only ran while
