@@ -50,7 +50,8 @@ class HybridActionSelector(TensorDictModuleBase):
     that many seconds). A forecast that holds each action 1 s calls the sharpest steps of a lane change a failure
     and hands the next step back; patience keeps such a manoeuvre whole. The count is state of this selector, for
     one takeover at a time (``InterventionTransform``, ``InterventionWrapper``; batched inputs keep one count per
-    row).
+    row, and ``HybridSelectionTransform`` keeps its own count per row); :meth:`streak_state` /
+    :meth:`load_streak_state` carry it through a checkpoint.
     """
 
     def __init__(
@@ -145,6 +146,15 @@ class HybridActionSelector(TensorDictModuleBase):
         if self.imminent_failure is not None:
             replace = replace | (veto & (value_mentor <= self.imminent_failure))
         return ~replace
+
+    def streak_state(self) -> list | None:
+        """The veto count of the takeover in progress (``veto_patience`` > 1), as JSON data: None (no count yet: the
+        next ``select`` starts one) or the nested list of the count tensor (``(*B,)``, int64)."""
+        return None if self._veto_streak is None else self._veto_streak.tolist()
+
+    def load_streak_state(self, state: list | int | None) -> None:
+        """Restore :meth:`streak_state` (None: the fresh state)."""
+        self._veto_streak = None if state is None else torch.as_tensor(state, dtype=torch.long)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         obs, mentor, phy = (tensordict.get(k) for k in self.in_keys)
