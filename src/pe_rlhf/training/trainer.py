@@ -27,6 +27,12 @@ gamepad unplugged: ``disconnects``) triggers a checkpoint at the end of that bat
 with a checkpoint of its last frame; ``train/sim_errors_total`` counts episodes the simulator's
 faults ended (:mod:`pe_rlhf.envs.driving_env`).
 
+A checkpoint taken while collecting (``single`` backend) holds the collection in progress
+(:mod:`pe_rlhf.training.collection_state`: the episode, the takeover, the selector's veto count, the
+collector's carrier), so ``--resume`` from it with no journal after it (a run's folder kept at that
+checkpoint) continues bit-identically to the run that went on; after a kill, the journal's batches are
+replayed and collection starts a fresh episode.
+
 ``collector.backend`` picks the collector (:func:`pe_rlhf.training.builders.build_collector`). With
 a multi-worker backend the workers own the envs, mentors and transforms, so a resume restarts the
 workers' simulated mentors (fatigue, RNG) and sets their transform step counters from the
