@@ -44,18 +44,24 @@ def _driving_rollout(transform, steps=48):
     return env.rollout(steps, _alternating_agent(env), tensordict=td, auto_reset=False)
 
 
-@pytest.mark.parametrize("switch_margin, warmup_steps", [(None, 6), (float("inf"), 0), (0.05, 0)])
-def test_selection_transform_after_our_proposals_decides_as_the_built_in_selector(switch_margin, warmup_steps):
+@pytest.mark.parametrize("switch_margin, warmup_steps, patience, imminent", [
+    (None, 6, 1, None), (float("inf"), 0, 1, None), (0.05, 0, 1, None), (None, 0, 3, None), (None, 6, 2, 0.0)])
+def test_selection_transform_after_our_proposals_decides_as_the_built_in_selector(switch_margin, warmup_steps,
+                                                                                  patience, imminent):
     """``Compose(HybridSelectionTransform(s), InterventionTransform(mentor, physics=p))`` writes the same seven
     takeover keys, step by step, as ``InterventionTransform(mentor, s, p)``: the same executed actions, choices
-    and costs (warm-up bypassed, the sticky choice held within a takeover)."""
+    and costs (warm-up bypassed, the sticky choice held within a takeover, a patient veto counted per takeover)."""
     torch.manual_seed(0)
     ensemble = QEnsemble(250, 2, num_members=2, hidden=(16,))
-    built_in = _driving_rollout(InterventionTransform(
-        DriverMentor(), HybridActionSelector(ensemble, epsilon_select=0.0, switch_margin=switch_margin),
-        IDMMobilPolicy(), warmup_steps=warmup_steps))
+
+    def selector(veto_patience=patience):
+        return HybridActionSelector(ensemble, epsilon_select=0.0, switch_margin=switch_margin,
+                                    veto_patience=veto_patience, imminent_failure=imminent)
+
+    built_in = _driving_rollout(InterventionTransform(DriverMentor(), selector(), IDMMobilPolicy(),
+                                                     warmup_steps=warmup_steps))
     composed = _driving_rollout(Compose(
-        HybridSelectionTransform(HybridActionSelector(ensemble, epsilon_select=0.0, switch_margin=switch_margin)),
+        HybridSelectionTransform(selector()),
         InterventionTransform(DriverMentor(), physics=IDMMobilPolicy(), warmup_steps=warmup_steps)))
     for key in OUT_KEYS:
         torch.testing.assert_close(composed["next", key], built_in["next", key], rtol=0, atol=0, msg=key)
@@ -68,6 +74,10 @@ def test_selection_transform_after_our_proposals_decides_as_the_built_in_selecto
         assert chosen[judged].any() and (~chosen[judged]).any()
     physics = built_in["next", "physics_action"][judged]
     assert (physics.abs().sum(-1) > 0).all()
+    if patience > 1 and imminent is None:  # the count changed choices: judging every step alone chooses otherwise
+        alone = _driving_rollout(InterventionTransform(DriverMentor(), selector(1), IDMMobilPolicy(),
+                                                       warmup_steps=warmup_steps))
+        assert not torch.equal(alone["next", "mentor_selected"], built_in["next", "mentor_selected"])
 
 
 @pytest.mark.parametrize("selection_after", [False, True])
@@ -158,9 +168,74 @@ def test_renamed_keys_and_the_wrong_order():
         HybridSelectionTransform(SignValue())
 
 
-def test_a_patient_selector_is_refused_in_one_line():
-    from pe_rlhf.transforms import HybridActionSelector, HybridSelectionTransform
+class ScheduleInfo(TeleopInfo):
+    """``TeleopInfo`` with the takeover flags of a schedule: ``flags[t]`` (one per batch row) at step ``t``."""
 
-    selector = HybridActionSelector(torch.nn.Identity(), veto_patience=3)
-    with pytest.raises(ValueError, match="veto_patience=3 is not supported here"):
-        HybridSelectionTransform(selector)
+    def __init__(self, flags):
+        super().__init__()
+        self.flags = torch.as_tensor(flags, dtype=torch.bool)
+
+    def _inv_call(self, tensordict):
+        shape = tensordict.get("action").shape
+        tensordict.set("mentor_action", torch.ones(shape))
+        tensordict.set("physics_action", -torch.ones(shape))
+        tensordict.set("intervention", self.flags[self.step_count].reshape(*shape[:-1], 1).clone())
+        self.step_count += 1
+        return tensordict
+
+
+class PhysicsBetter(torch.nn.Module):
+    """A value source that vetoes the mentor at every step: the mentor's action (+1) is worth 0, physics' 1."""
+
+    def values(self, observation, actions):
+        return (actions[..., 0] < 0).float().unsqueeze(0)
+
+
+def _zero_action(td):
+    return td.set("action", torch.zeros(td.get("observation").shape[:-1] + (1,)))
+
+
+def test_a_patient_veto_is_counted_per_row_as_the_selector_counts_one_takeover():
+    """Batched Pendulum, takeovers starting and ending at different steps in each row: every judged step's
+    choice is the one a ``HybridActionSelector`` makes when fed that row alone, step by step (``previous=None``
+    where the row's takeover starts)."""
+    flags = torch.tensor([[1, 0], [1, 1], [1, 1], [1, 0], [0, 1], [1, 1], [1, 1], [1, 1], [1, 0], [1, 1],
+                          [1, 1], [0, 1], [1, 1], [1, 1]], dtype=torch.bool)
+    selection = HybridSelectionTransform(HybridActionSelector(SignValue(), epsilon_select=0.0, veto_patience=2))
+    td = _pendulum(selection, ScheduleInfo(flags), batched=True).rollout(len(flags), _zero_action,
+                                                                        break_when_any_done=False)
+    chosen = td["next", "mentor_selected"].squeeze(-1)  # (2, T)
+    kept_through_a_veto = 0
+    for row in range(2):
+        reference = HybridActionSelector(SignValue(), epsilon_select=0.0, veto_patience=2)
+        previous = None
+        for t in range(len(flags)):
+            if not flags[t, row]:
+                assert not chosen[row, t]
+                previous = None
+                continue
+            _, expected = reference.select(td["observation"][row, t], torch.ones(1), -torch.ones(1), previous)
+            assert bool(chosen[row, t]) == bool(expected.item()), (row, t)
+            previous = bool(expected.item())
+            kept_through_a_veto += int(previous and td["observation"][row, t, 1] < 0)  # vetoed, mentor kept
+    assert kept_through_a_veto > 0 and (~chosen[flags.T]).any()  # patience acted, and vetoes replaced the mentor
+
+
+def test_the_veto_count_restarts_at_a_reset_and_only_in_the_rows_reset():
+    """Every step judged, the mentor vetoed at every step, patience 3: the mentor keeps two steps, physics takes
+    the third on. A reset mid-takeover starts the count again; a partial reset only in the row reset."""
+    selection = HybridSelectionTransform(HybridActionSelector(PhysicsBetter(), epsilon_select=0.0, veto_patience=3))
+    env = _pendulum(selection, ScheduleInfo(torch.ones(16, 2)), batched=True)
+    first = env.rollout(4, _zero_action, break_when_any_done=False)
+    expected = torch.tensor([True, True, False, False])
+    assert torch.equal(first["next", "mentor_selected"].squeeze(-1), torch.stack([expected, expected]))
+    assert torch.equal(selection.veto_counts(), torch.tensor([4, 4]))
+    partial = env.reset(first[..., -1]["next"].clone().set("_reset", torch.tensor([[True], [False]])))
+    assert torch.equal(selection.veto_counts(), torch.tensor([0, 4]))
+    second = env.rollout(3, _zero_action, tensordict=partial, auto_reset=False, break_when_any_done=False)
+    assert torch.equal(second["next", "mentor_selected"].squeeze(-1),
+                       torch.tensor([[True, True, False], [False, False, False]]))
+    env.reset()  # every row
+    assert torch.equal(selection.veto_counts(), torch.tensor([0, 0]))
+    third = env.rollout(3, _zero_action, break_when_any_done=False)
+    assert torch.equal(third["next", "mentor_selected"].squeeze(-1), torch.tensor([[True, True, False]] * 2))

@@ -220,3 +220,33 @@ def test_patience_one_is_every_step_alone():
 def test_invalid_patience_raises(kwargs):
     with pytest.raises(ValueError, match=next(iter(kwargs))):
         HybridActionSelector(ExactQ(), **kwargs)
+
+
+def test_select_counted_is_select_with_the_count_passed_in_and_out():
+    """The stateless form makes the stateful one's choices when handed back the count it returned (zeros, or
+    None, at a takeover's start), and leaves the selector's own count alone."""
+    sel, stateless = _patient(3), _patient(3)
+    streak = None
+    for value, previous in ((-1.0, None), (-1.0, True), (-1.0, True), (1.0, False), (-1.0, True), (-1.0, None)):
+        if previous is None:
+            streak = None
+        _, expected = sel.select(torch.zeros(OBS), _acts(value), _acts(0.0), previous)
+        _, chosen, streak = stateless.select_counted(torch.zeros(OBS), _acts(value), _acts(0.0), previous, streak)
+        assert bool(chosen.item()) == bool(expected.item()) and streak.dtype == torch.long
+    assert stateless.streak_state() is None
+
+
+def test_the_veto_count_survives_a_checkpoint_as_json():
+    """``streak_state`` -> JSON -> ``load_streak_state`` in a fresh selector: the third veto replaces the mentor,
+    as in the selector that counted the first two; None loads the fresh state (a new takeover's count)."""
+    import json
+
+    sel = _patient(3)
+    assert [_step(sel, -1.0, p) for p in (None, True)] == [True, True]
+    saved = json.loads(json.dumps(sel.streak_state()))
+    assert saved == [2]
+    restored, fresh = _patient(3), _patient(3)
+    restored.load_streak_state(saved)
+    fresh.load_streak_state(None)
+    assert _step(restored, -1.0, True) is False and _step(sel, -1.0, True) is False
+    assert _step(fresh, -1.0, True) is True  # counting from 0: the first veto

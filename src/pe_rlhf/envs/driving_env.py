@@ -15,6 +15,11 @@ good step, reward and cost 0) and a warning on the ``pe_rlhf.envs`` logger namin
 step and the fault; the next ``reset`` loads a fresh scene, so a run goes on.
 ``MAX_CONSECUTIVE_SIM_ERRORS`` faults in a row (no good step between them) re-raise: the simulator
 is broken, not unlucky.
+
+Resuming mid-episode: :meth:`DrivingEnv.resume_state` is plain JSON data (the scene-drawing RNG, the
+scene in progress and the actions executed in it, the fault counters); :meth:`DrivingEnv.load_resume_state`
+reloads that scene and replays the actions, which reproduces the road exactly (a scene's traffic has
+its own RNG, seeded by the scene), so a checkpointed run continues its episode where it was.
 """
 
 from __future__ import annotations
@@ -92,6 +97,7 @@ class DrivingEnv(AbstractEnv):
         self.sim_errors = 0  # steps ended by a simulator fault, over the env's life
         self._consecutive_errors = 0
         self._last_good: tuple[np.ndarray, dict] | None = None
+        self._episode_actions: list[np.ndarray] = []  # executed since the last reset (resume_state)
         super().__init__(
             {
                 "simulation_frequency": self.world.simulation_frequency,
@@ -138,6 +144,7 @@ class DrivingEnv(AbstractEnv):
         self.scene_seed = self._draw_scene_seed() if scene_seed is None else int(scene_seed)
         self.time = self.steps = 0
         self.done = False
+        self._episode_actions = []
         self._load(self.scene(self.scene_seed))
         obs = build_observation(self)
         info = self._info_dict(cost=0.0)
@@ -182,6 +189,7 @@ class DrivingEnv(AbstractEnv):
             raise ValueError(f"action {np.asarray(action).tolist()} is not finite (a caller's bug, not a simulator "
                              "fault: pe_rlhf's InterventionTransform never executes one)")
         step = round(self.time * self.world.policy_frequency)  # this step's index in the episode
+        self._episode_actions.append(np.array(action, copy=True))
         try:
             out = self._simulate(action)
             fault, error = _non_finite(out), None
@@ -192,6 +200,29 @@ class DrivingEnv(AbstractEnv):
             self._last_good = (out[0], out[4])
             return out
         return self._fault_step(step, fault, error)
+
+    def resume_state(self) -> dict:
+        """What :meth:`load_resume_state` needs to continue from here, as JSON data: ``np_random`` (the
+        scene draws' bit-generator state), ``scene_seed`` (None before the first reset), ``actions`` (each
+        executed since that reset, as lists, with their ``dtype``) and the fault counters."""
+        actions = self._episode_actions
+        return {"np_random": self.np_random.bit_generator.state, "scene_seed": getattr(self, "scene_seed", None),
+                "dtype": str(actions[0].dtype) if actions else "float32", "actions": [a.tolist() for a in actions],
+                "sim_errors": int(self.sim_errors), "consecutive_errors": int(self._consecutive_errors)}
+
+    def load_resume_state(self, state: dict) -> None:
+        """Continue from :meth:`resume_state`: reload its scene and replay its actions (rendering off), then
+        set the scene RNG and the fault counters as they were."""
+        if state["scene_seed"] is not None:
+            render_mode, self.render_mode = self.render_mode, None
+            try:
+                self.reset(options={"scene_seed": int(state["scene_seed"])})
+                for action in state["actions"]:
+                    self.step(np.asarray(action, dtype=state["dtype"]))
+            finally:
+                self.render_mode = render_mode
+        self.np_random.bit_generator.state = state["np_random"]
+        self.sim_errors, self._consecutive_errors = int(state["sim_errors"]), int(state["consecutive_errors"])
 
     def _fault_step(self, step: int, fault: str, error: Exception | None):
         """End the episode after a simulator fault: the last good observation and info, truncated."""

@@ -214,6 +214,8 @@ class SimulatedMentor(Mentor):
             "manoeuvre": None if self._manoeuvre is None else dict(self._manoeuvre),
             "target_lane": self.driver.target_lane,
             "last_slot": self.driver._last_slot,
+            "last_intended": self.last_intended.tolist(),
+            "last_action": self.last_action.tolist(),
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -229,6 +231,8 @@ class SimulatedMentor(Mentor):
         self._manoeuvre = None if state["manoeuvre"] is None else dict(state["manoeuvre"])
         self.driver.target_lane = state["target_lane"]
         self.driver._last_slot = state.get("last_slot")
+        self.last_intended = np.asarray(state.get("last_intended", (0.0, 0.0)), dtype=np.float32)
+        self.last_action = np.asarray(state.get("last_action", (0.0, 0.0)), dtype=np.float32)
         self._resume = True
 
     # -- one step ------------------------------------------------------------------------

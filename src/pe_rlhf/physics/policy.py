@@ -66,17 +66,37 @@ class IDMMobilPolicy:
         self.target_lane: int | None = None
         self._last_decision = -math.inf
         self._road = None
+        self._resume = False  # a loaded plan waits for the restored episode's road (load_state_dict)
 
     def reset(self) -> None:
         self.target_lane = None
         self._last_decision = -math.inf
         self._road = None
+        self._resume = False
+
+    def state_dict(self, env=None) -> dict:
+        """The lane plan, as JSON data: ``target_lane``, ``last_decision`` (the last MOBIL decision's env time, None
+        for never) and ``planning`` (the plan belongs to the episode ``env`` is in; without ``env``, to any)."""
+        road = getattr(getattr(env, "unwrapped", env), "road", None) if env is not None else self._road
+        planning = self._resume or (self._road is not None and self._road is road)
+        return {"target_lane": self.target_lane, "planning": planning,
+                "last_decision": None if math.isinf(self._last_decision) else self._last_decision}
+
+    def load_state_dict(self, state: dict) -> None:
+        """Restore :meth:`state_dict`; with ``planning``, the next call adopts the env's road as the plan's (a
+        restored episode continues) instead of planning afresh."""
+        self.target_lane = state["target_lane"]
+        self._last_decision = -math.inf if state["last_decision"] is None else float(state["last_decision"])
+        self._road, self._resume = None, bool(state["planning"])
 
     def __call__(self, env) -> np.ndarray:
         env = getattr(env, "unwrapped", env)
         slot, offset = ego_lane_slot(env)
-        if env.road is not self._road:  # every env.reset builds a new road: a new episode
+        if env.road is not self._road and self._resume:  # restored mid-episode: keep the loaded plan
+            self._road = env.road
+        elif env.road is not self._road:  # every env.reset builds a new road: a new episode
             self._road, self.target_lane, self._last_decision = env.road, slot, -math.inf
+        self._resume = False
         items = neighbours(env, include_obstacles=self.config.see_obstacles or self.config.stop_for_obstacles)
         if self.config.stop_for_obstacles and not self.config.see_obstacles:
             lateral_items = [n for n in items if not n.is_obstacle]  # MOBIL's view: vehicles only

@@ -6,7 +6,8 @@ On disk (``directory/``)::
         tensors.pt             torch.save({"format_version", "modules": {name: state_dict},
                                "optimizers": {name: state_dict}}); plain tensors/ints/floats/
                                strings/lists/tuples/dicts only, loaded with ``weights_only=True``
-        state.json             the caller's JSON state (counters, mentor, schedule, config)
+        state.json             the caller's JSON state (counters, mentor, schedule, config, the collection in
+                               progress: :mod:`pe_rlhf.training.collection_state`)
         rng.pt                 torch CPU (+ CUDA) generator states as uint8 tensors, numpy's
                                global MT19937 state and Python ``random``'s state as lists of ints
                                (``weights_only=True`` as well)

@@ -27,6 +27,12 @@ gamepad unplugged: ``disconnects``) triggers a checkpoint at the end of that bat
 with a checkpoint of its last frame; ``train/sim_errors_total`` counts episodes the simulator's
 faults ended (:mod:`pe_rlhf.envs.driving_env`).
 
+A checkpoint taken while collecting (``single`` backend) holds the collection in progress
+(:mod:`pe_rlhf.training.collection_state`: the episode, the takeover, the selector's veto count, the
+collector's carrier), so ``--resume`` from it with no journal after it (a run's folder kept at that
+checkpoint) continues bit-identically to the run that went on; after a kill, the journal's batches are
+replayed and collection starts a fresh episode.
+
 ``collector.backend`` picks the collector (:func:`pe_rlhf.training.builders.build_collector`). With
 a multi-worker backend the workers own the envs, mentors and transforms, so a resume restarts the
 workers' simulated mentors (fatigue, RNG) and sets their transform step counters from the
@@ -49,6 +55,8 @@ from pe_rlhf.evaluation import TorchRLPolicyAdapter, evaluate
 from pe_rlhf.modules import EnsembleSchedule, fit_q_ensemble
 from pe_rlhf.threads import torch_threads
 from pe_rlhf.training import builders
+from pe_rlhf.training.checkpoint import capture_rng, restore_rng
+from pe_rlhf.training.collection_state import capture_collection, restore_collection
 from pe_rlhf.training.config import algorithm_name, method_name
 from pe_rlhf.training.steps import batch_metrics, ensemble_transitions, relabel_warmup
 from pe_rlhf.transforms import InterventionTransform, RealtimePacing
@@ -188,8 +196,6 @@ def train(cfg, out_dir: Path, logger, checkpoint_dir: Path | None = None, resume
 
 
 def _train(cfg, out_dir, logger, checkpoint_dir, resume: bool, update_threads: int) -> dict:
-    from pe_rlhf.training.checkpoint import restore_rng
-
     run = _Run(cfg, logger, checkpoint_dir, update_threads)
     journaled, pending = run.resume() if resume else ([], None)
     if resume and run.done:  # otherwise the re-evaluation below looks like training that did nothing
@@ -259,6 +265,7 @@ class _Run:
         self.updater = builders.build_updater(cfg, self.loss, self.optimizers, soft_update, self.replay, self.actor,
                                               update_threads, self.device)
         self.collector, self.losses, self.saved_step, self.disconnects = None, {}, -1, 0
+        self.resumed_collection: tuple[dict, dict | None] | None = None  # (collection, mentor state) to continue
 
     @property
     def done(self) -> bool:
@@ -287,10 +294,15 @@ class _Run:
         self.counters.load_state_dict(state["counters"])
         self.schedule.load_state_dict(state["schedule"])
         self.restore_actors(state)
+        if state.get("collection") is not None:  # the episode in progress at the checkpoint (single backend)
+            self.resumed_collection = (state["collection"], state["mentor"])
         if self.journal is None:
             return [], None
         entries = self.journal.entries_after(self.saved_step)
-        return entries, self.journal.pending_at(entries[-1].end if entries else self.saved_step)
+        pending = self.journal.pending_at(entries[-1].end if entries else self.saved_step)
+        if entries or pending is not None:  # collection went on after the checkpoint: its episode is not the next
+            self.resumed_collection = None
+        return entries, pending
 
     def restore_actors(self, state: dict) -> None:
         """The transform's step count and the mentor's state (multi-worker backends restart theirs)."""
@@ -319,8 +331,13 @@ class _Run:
             return
         if self.pending is not None:
             self.pending.restart(int(self.counters.frames))
+        rng = capture_rng() if self.resumed_collection is not None else None
         self.collector = builders.build_collector(self.cfg, self.env, self.updater.policy, remaining,
                                                   ensemble=self.ensemble, start_frames=int(self.counters.frames))
+        if self.resumed_collection is not None:  # continue the checkpoint's episode, not the collector's reset
+            restore_collection(self.collector, self.transform, *self.resumed_collection)
+            restore_rng(rng)  # as if no collector had been built here (the original's went on stepping)
+            self.resumed_collection = None
         t_env = time.time()
         for batch in self.collector:
             self.counters.env_seconds += time.time() - t_env
@@ -400,7 +417,7 @@ class _Run:
         c = self.counters
         c.updates = self.updates0 + self.updater.updates_done
         state = {"counters": c.state_dict(), "schedule": self.schedule.state_dict(), **self._actor_state(),
-                 "run": self.run_info()}
+                 "collection": capture_collection(self.collector, self.transform), "run": self.run_info()}
         path = save_checkpoint(self.checkpoint_dir, step=int(c.frames), keep=int(self.cfg.checkpoint.keep),
                                **self.objects, state=state)
         self.saved_step = int(c.frames)

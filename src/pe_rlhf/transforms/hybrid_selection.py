@@ -26,7 +26,10 @@ Writes ``mentor_selected`` (*B, 1) bool on the inverse path (for transforms near
 source's ``_step``), and under ``next`` (``out_keys``, in this order): ``behavior_action`` (*B, A) float32, the
 action executed, and ``mentor_selected`` (*B, 1) bool, the mentor's proposal was executed in a judged step.
 
-``switch_margin`` (the selector's) makes a choice sticky over consecutive judged steps of the same env. A value
+``switch_margin`` (the selector's) makes a choice sticky over consecutive judged steps of the same env.
+``veto_patience`` (the selector's) counts consecutive vetoes per batch row: a row's count starts from 0 where its
+takeover starts (its previous step was not judged, or the row was reset) and goes on over its consecutive judged
+steps, whatever the other rows do; the transform keeps the counts (``(*B,)`` int64), not the selector. A value
 source that forecasts from the simulator (``needs_env``) serves an unbatched env only.
 """
 
@@ -51,7 +54,8 @@ class HybridSelectionTransform(Transform):
 
     Args:
         selector: the :class:`~pe_rlhf.transforms.HybridActionSelector` that chooses (its value source,
-            ``epsilon_select``, ``variance_threshold`` and ``switch_margin``).
+            ``epsilon_select``, ``variance_threshold``, ``switch_margin``, ``veto_patience`` and
+            ``imminent_failure``; the veto counts are the transform's, one per batch row).
         in_keys: ``[action, observation, mentor_action, physics_action, intervention]``.
         out_keys: ``[behavior_action, mentor_selected]``.
     """
@@ -63,19 +67,30 @@ class HybridSelectionTransform(Transform):
                              f"{list(SELECTION_OUT_KEYS)} (got {out_keys})")
         if not isinstance(selector, HybridActionSelector):
             raise TypeError(f"HybridSelectionTransform needs a HybridActionSelector, got {type(selector).__name__}")
-        if selector.veto_patience > 1:
-            raise ValueError(f"HybridSelectionTransform: veto_patience={selector.veto_patience} is not supported here "
-                             "yet (the veto count lives in the selector, one takeover at a time); use "
-                             "InterventionTransform(mentor, selector, physics)")
         super().__init__(in_keys=in_keys, out_keys=out_keys)
         self.selector = selector
         self.action_key, self.observation_key, self.mentor_key, self.physics_key, self.intervention_key = in_keys
         self.behavior_key, self.selected_key = out_keys
         self._previous: torch.Tensor | None = None  # (*B, 1) the last judged step's choice (mentor?)
         self._was_judged: torch.Tensor | None = None  # (*B, 1) the last step was judged
+        self._veto_streak: torch.Tensor | None = None  # (N,) each row's consecutive vetoes in its takeover
+
+    def veto_counts(self) -> torch.Tensor:
+        """Each batch row's count of consecutive vetoes in its takeover so far, int64 ``(*B,)`` (zeros where no
+        takeover is going on: the last step was not judged, or the row was reset)."""
+        shape = () if self._was_judged is None else self._was_judged.shape[:-1]
+        if self._veto_streak is None or self._was_judged is None:
+            return torch.zeros(shape, dtype=torch.long)
+        return torch.where(self._was_judged.reshape(-1), self._veto_streak, 0).reshape(shape)
 
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
-        self._previous = self._was_judged = None  # no takeover carries over an episode's start
+        # No takeover carries over an episode's start: the rows reset (all, without a ``_reset`` mask) are unjudged.
+        reset = tensordict.get("_reset", None) if tensordict is not None else None
+        if reset is None or self._was_judged is None or reset.numel() != self._was_judged.numel():
+            self._previous = self._was_judged = torch.zeros((*tensordict_reset.batch_size, 1), dtype=torch.bool)
+            self._veto_streak = None
+        else:
+            self._was_judged = self._was_judged & ~reset.reshape(self._was_judged.shape).to(torch.bool)
         for key, spec in self.transform_observation_spec(Composite(shape=tensordict_reset.batch_size)).items():
             tensordict_reset.set(key, spec.zero())
         return tensordict_reset
@@ -112,13 +127,16 @@ class HybridSelectionTransform(Transform):
                 raise ValueError(f"HybridSelectionTransform: {type(self.selector.q_ensemble).__name__} forecasts "
                                  "from one simulator; this env is batched")
             kwargs["env"] = simulator_of(self.parent)
-        hybrid, chosen = self.selector.select(observation, mentor, physics, None, **kwargs)
+        streak = self.veto_counts().reshape(-1)  # 0 where a row's takeover starts at this step
+        hybrid, chosen, new_streak = self.selector.select_counted(observation, mentor, physics, None, streak, **kwargs)
         sticky = self.selector.switch_margin is not None and self._was_judged is not None
         if sticky and self._was_judged.any():  # consecutive judged steps: the choice the previous one made
-            hybrid_held, chosen_held = self.selector.select(observation, mentor, physics, self._previous, **kwargs)
+            hybrid_held, chosen_held, _ = self.selector.select_counted(observation, mentor, physics, self._previous,
+                                                                       streak, **kwargs)
             hold = self._was_judged.reshape(chosen.shape)
             hybrid = torch.where(hold, hybrid_held, hybrid)
             chosen = torch.where(hold, chosen_held, chosen)
+        self._veto_streak = new_streak.reshape(-1)  # rows not judged now restart at their next judged step
         return hybrid, chosen.reshape(*action_shape[:-1], 1)
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:

@@ -50,7 +50,8 @@ class HybridActionSelector(TensorDictModuleBase):
     that many seconds). A forecast that holds each action 1 s calls the sharpest steps of a lane change a failure
     and hands the next step back; patience keeps such a manoeuvre whole. The count is state of this selector, for
     one takeover at a time (``InterventionTransform``, ``InterventionWrapper``; batched inputs keep one count per
-    row).
+    row, and ``HybridSelectionTransform`` keeps its own count per row); :meth:`streak_state` /
+    :meth:`load_streak_state` carry it through a checkpoint.
     """
 
     def __init__(
@@ -104,7 +105,24 @@ class HybridActionSelector(TensorDictModuleBase):
         ``previous``: the choice at the previous step of the same takeover (bool, or ``(*B, 1)`` /
         ``(*B,)`` bool; None at a takeover's start); used only with ``switch_margin``. ``env``: the
         simulator, for a value source that forecasts from it (``needs_env``, e.g.
-        :class:`~pe_rlhf.physics.SafetyForecastValue`); unbatched then."""
+        :class:`~pe_rlhf.physics.SafetyForecastValue`); unbatched then. With ``veto_patience`` > 1 the veto
+        count is this selector's (:meth:`select_counted` takes it as an argument instead)."""
+        streak = None if previous is None else self._veto_streak  # None: a takeover's start counts from 0
+        hybrid, chosen, streak = self.select_counted(observation, mentor_action, physics_action, previous, streak, env)
+        if self.veto_patience > 1:
+            self._veto_streak = streak
+        return hybrid, chosen
+
+    @torch.no_grad()
+    def select_counted(self, observation: torch.Tensor, mentor_action: torch.Tensor, physics_action: torch.Tensor,
+                       previous: torch.Tensor | bool | None = None, streak: torch.Tensor | None = None, env=None
+                       ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """:meth:`select` without state: ``(hybrid_action, mentor_selected, streak)``.
+
+        ``streak``: each row's count of consecutive vetoes in its takeover before this step, int64 ``(N,)``
+        for ``N`` rows (``(1,)`` unbatched); None or another shape: zeros (every row's takeover starts here).
+        The returned ``streak`` is the count after this step (used with ``veto_patience`` > 1; without it,
+        zeros). ``previous`` serves ``switch_margin`` only."""
         obs = torch.cat([observation, observation], 0) if observation.dim() > 1 else torch.stack([observation] * 2)
         acts = torch.cat([mentor_action, physics_action], 0) if mentor_action.dim() > 1 else torch.stack(
             [mentor_action, physics_action])
@@ -117,8 +135,10 @@ class HybridActionSelector(TensorDictModuleBase):
         q_mentor, q_phy = q.chunk(2, dim=1)
         advantage = (q_mentor - q_phy).mean(0)
         chosen = advantage >= self.epsilon_select
+        if streak is None or streak.shape != chosen.shape:
+            streak = torch.zeros_like(chosen, dtype=torch.long)
         if self.veto_patience > 1:
-            chosen = self._patient(chosen, q_mentor.mean(0), previous)
+            chosen, streak = self._patient(chosen, q_mentor.mean(0), streak)
         if self.switch_margin is not None and previous is not None:
             prev = torch.as_tensor(previous, dtype=torch.bool, device=advantage.device).reshape(advantage.shape)
             stay_mentor = advantage >= self.epsilon_select - self.switch_margin
@@ -132,19 +152,27 @@ class HybridActionSelector(TensorDictModuleBase):
         if mentor_action.dim() == 1:
             chosen = chosen.squeeze(0)
         hybrid = torch.where(chosen.unsqueeze(-1), mentor_action, physics_action)
-        return hybrid, chosen.unsqueeze(-1)
+        return hybrid, chosen.unsqueeze(-1), streak
 
-    def _patient(self, chosen: torch.Tensor, value_mentor: torch.Tensor, previous) -> torch.Tensor:
+    def _patient(self, chosen: torch.Tensor, value_mentor: torch.Tensor, streak: torch.Tensor
+                 ) -> tuple[torch.Tensor, torch.Tensor]:
         """Physics replaces the mentor only after ``veto_patience`` consecutive vetoes in a takeover, or at once
-        where the mentor's own value is at most ``imminent_failure``."""
+        where the mentor's own value is at most ``imminent_failure``; returns the choice and the new count."""
         veto = ~chosen
-        if previous is None or self._veto_streak is None or self._veto_streak.shape != veto.shape:
-            self._veto_streak = torch.zeros_like(veto, dtype=torch.long)
-        self._veto_streak = torch.where(veto, self._veto_streak + 1, torch.zeros_like(self._veto_streak))
-        replace = self._veto_streak >= self.veto_patience
+        streak = torch.where(veto, streak + 1, torch.zeros_like(streak))
+        replace = streak >= self.veto_patience
         if self.imminent_failure is not None:
             replace = replace | (veto & (value_mentor <= self.imminent_failure))
-        return ~replace
+        return ~replace, streak
+
+    def streak_state(self) -> list | None:
+        """The veto count of the takeover in progress (``veto_patience`` > 1), as JSON data: None (no count yet: the
+        next ``select`` starts one) or the nested list of the count tensor (``(*B,)``, int64)."""
+        return None if self._veto_streak is None else self._veto_streak.tolist()
+
+    def load_streak_state(self, state: list | int | None) -> None:
+        """Restore :meth:`streak_state` (None: the fresh state)."""
+        self._veto_streak = None if state is None else torch.as_tensor(state, dtype=torch.long)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         obs, mentor, phy = (tensordict.get(k) for k in self.in_keys)

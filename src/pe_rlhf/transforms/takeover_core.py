@@ -112,6 +112,28 @@ class TakeoverCore:
         if hasattr(self.warmup_driver, "reset"):
             self.warmup_driver.reset()
 
+    def state_dict(self, env=None) -> dict:
+        """The takeover in progress between two steps, as JSON data: ``in_takeover``, ``previous_choice`` (the
+        selector's last choice in it), ``selector`` (its veto count: ``HybridActionSelector.streak_state``) and
+        ``physics`` (its lane plan, when it has a ``state_dict``; ``env``: the simulator, whose episode the plan
+        must belong to). The mentor's state and ``total_steps`` are saved apart (checkpoint ``mentor``,
+        ``transform_steps``)."""
+        streak = getattr(self.selector, "streak_state", None)
+        physics = getattr(self.physics, "state_dict", None)
+        return {"in_takeover": self._in_takeover, "previous_choice": self._previous_choice,
+                "selector": streak() if streak is not None else None,
+                "physics": physics(env) if physics is not None else None}
+
+    def load_state_dict(self, state: dict) -> None:
+        """Restore :meth:`state_dict` (keys it lacks keep their fresh value); no decision is pending after it."""
+        self._in_takeover = bool(state.get("in_takeover", False))
+        self._previous_choice = bool(state.get("previous_choice", False))
+        self.pending = None
+        if hasattr(self.selector, "load_streak_state"):
+            self.selector.load_streak_state(state.get("selector"))
+        if state.get("physics") is not None and hasattr(self.physics, "load_state_dict"):
+            self.physics.load_state_dict(state["physics"])
+
     def decide(self, env, observation, agent_action) -> TakeoverStep:
         """This step's decision for the agent's proposal ``agent_action`` ``(A,)`` at ``observation`` ``(O,)``
         (tensor or array); kept as ``pending`` until :meth:`commit`."""

@@ -1,0 +1,86 @@
+"""``--resume`` from a checkpoint taken mid-episode and mid-takeover continues exactly as the run that went on.
+
+A run trains to frame 150 with a checkpoint every 75 frames (60-step episodes: the one at 75 is 15 steps into
+the second episode, inside a takeover). A copy of its folder reduced to the checkpoint at 75 (``latest`` there,
+no journal: what a user keeps of a finished run) is resumed to 150: its checkpoint at 150 (buffers, counters,
+networks, optimisers, RNG, the collection state) and its metrics rows must equal the original's, bit for bit.
+The selector cases: the forecast with a patient veto (``veto_patience=3``, ``imminent_failure=0.3``) at the
+shipped ``epsilon_select=-0.5``, and at ``0.5``, where the mentor is vetoed often enough that the checkpoint
+falls inside a veto streak (the count must travel with the checkpoint).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+from _compare import assert_same
+from _runs import checkpoint_contents, train
+
+pytestmark = [pytest.mark.usefixtures("one_thread"), pytest.mark.filterwarnings("ignore::UserWarning")]
+
+MID, END = 75, 150
+COMMON = ["env.horizon=60", f"checkpoint.every_frames={MID}", "checkpoint.keep=3"]
+PATIENT_FORECAST = ["selector.value=forecast", "selector.veto_patience=3", "selector.imminent_failure=0.3"]
+
+
+def _ckpt(run: Path, step: int) -> Path:
+    return run / "checkpoints" / f"ckpt_{step:09d}"
+
+
+def _reduce_to_checkpoint(original: Path, copy: Path, step: int) -> Path:
+    """A copy of ``original`` as it was at checkpoint ``step``: later checkpoints and the journal dropped."""
+    shutil.copytree(original, copy)
+    checkpoints = copy / "checkpoints"
+    for path in checkpoints.glob("ckpt_*"):
+        if int(path.name.removeprefix("ckpt_")) > step:
+            shutil.rmtree(path)
+    shutil.rmtree(checkpoints / "journal", ignore_errors=True)
+    (checkpoints / "latest").write_text(f"ckpt_{step:09d}\n")
+    return copy
+
+
+def _metric_rows(run: Path) -> list[dict[str, str]]:
+    """``metrics.csv`` without the wall-clock columns."""
+    header, *rows = (run / "metrics.csv").read_text().splitlines()
+    names = header.split(",")
+    keep = [i for i, name in enumerate(names) if not (name.startswith("time/") or name == "wall_time")]
+    return [{names[i]: row.split(",")[i] for i in keep} for row in rows]
+
+
+@pytest.mark.parametrize("epsilon, in_a_veto_streak", [(-0.5, False), (0.5, True)], ids=["shipped", "vetoes"])
+def test_resume_mid_takeover_matches_the_run_that_went_on(tmp_path, epsilon, in_a_veto_streak):
+    original = tmp_path / "original"
+    train(original, f"collector.total_frames={END}", *COMMON, *PATIENT_FORECAST, f"selector.epsilon_select={epsilon}")
+    saved = json.loads((_ckpt(original, MID) / "state.json").read_text())["collection"]
+    assert len(saved["env"]["actions"]) == 15 and saved["takeover"]["in_takeover"]  # mid-episode, mid-takeover
+    assert (saved["takeover"]["selector"][0] > 0) == in_a_veto_streak
+
+    resumed = _reduce_to_checkpoint(original, tmp_path / "resumed", MID)
+    train(resumed, f"collector.total_frames={END}", resume=True)
+    assert_same(checkpoint_contents(_ckpt(original, END)), checkpoint_contents(_ckpt(resumed, END)), "resumed")
+    assert _metric_rows(resumed) == _metric_rows(original)
+
+
+def test_a_checkpoint_without_collection_state_resumes_with_a_fresh_episode(tmp_path):
+    """Checkpoints from before the collection state: ``--resume`` still loads them, and starts a new episode."""
+    original = tmp_path / "original"
+    train(original, f"collector.total_frames={MID}", *COMMON)
+    ckpt = _ckpt(original, MID)
+    state = json.loads((ckpt / "state.json").read_text())
+    del state["collection"]
+    (ckpt / "state.json").write_text(json.dumps(state, indent=1, sort_keys=True))
+    marker = json.loads((ckpt / "COMPLETE").read_text())  # the checksums follow the edited file
+    data = (ckpt / "state.json").read_bytes()
+    marker["files"]["state.json"] = {"bytes": len(data), "sha256": hashlib.sha256(data).hexdigest()}
+    (ckpt / "COMPLETE").write_text(json.dumps(marker))
+
+    final = train(original, f"collector.total_frames={MID + 25}", resume=True)
+    assert final["training"]["frames"] == MID + 25
+    replay = checkpoint_contents(_ckpt(original, MID + 25))["replay"]
+    assert float(replay["travel_distance"][MID - 1]) > 0  # the checkpoint fell mid-episode...
+    assert float(replay["travel_distance"][MID]) == 0  # ...and the resumed run went on from a new one's start
+    assert int(replay["collector", "traj_ids"][MID]) == 0  # by a fresh collector
