@@ -146,25 +146,26 @@ class QEnsembleTDLoss(LossModule):
     def td_target(self, tensordict: TensorDictBase) -> torch.Tensor:
         """``y`` per row ``(N,)`` of a flat batch, without gradient (draws the target-action noise)."""
         keys = self.tensor_keys
-        observation = tensordict.get(keys.observation)
+        observation = tensordict[keys.observation]
         n = observation.shape[0]
-        next_td = tensordict.get("next")
-        reward = next_td.get(keys.reward).reshape(n).to(observation.dtype)
-        terminated = next_td.get(keys.terminated).reshape(n).to(observation.dtype)
+        next_td = tensordict["next"]
+        reward = next_td[keys.reward].reshape(n).to(observation.dtype)
+        terminated = next_td[keys.terminated].reshape(n).to(observation.dtype)
         with torch.no_grad():
-            next_action = tensordict.get(keys.next_action)
+            next_action = tensordict[keys.next_action]
             if self.target_noise > 0:
                 next_action = next_action + self.target_noise * torch.randn_like(next_action)
             next_action = next_action.clamp(-1.0, 1.0)
-            q_next = self.target_qvalue_network.values(next_td.get(keys.observation), next_action).mean(0)
+            q_next = self.target_qvalue_network.values(next_td[keys.observation], next_action).mean(0)
             return reward + self.gamma * (1.0 - terminated) * q_next
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        """The TD loss on a batch of transitions (keys in the class docstring); see the class for the outputs."""
+        """The TD loss on a batch of transitions (keys in the class docstring); see the class for the outputs.
+        A missing key raises ``KeyError``."""
         tensordict = tensordict.reshape(-1)
         y = self.td_target(tensordict)
-        q = self.qvalue_network.values(tensordict.get(self.tensor_keys.observation),
-                                       tensordict.get(self.tensor_keys.action))  # (K, N)
+        q = self.qvalue_network.values(tensordict[self.tensor_keys.observation],
+                                       tensordict[self.tensor_keys.action])  # (K, N)
         if self.regression == "mean":
             loss = (y - q.mean(0)).pow(2).mean()
         else:
