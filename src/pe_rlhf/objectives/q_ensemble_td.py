@@ -110,6 +110,8 @@ class QEnsembleTDLoss(LossModule):
             raise ValueError(f"QEnsembleTDLoss regression={regression!r} is invalid; allowed: {list(REGRESSIONS)}")
         super().__init__()
         self.gamma, self.target_noise, self.regression = float(gamma), float(target_noise), regression
+        # A rebuilt copy rather than convert_to_functional's clone: its init's draws are part of the fit's seeded
+        # stream (minibatches and noise come after them), so fits keep the numbers they had before this loss.
         target = QEnsemble(**qvalue_network.config)
         target.load_state_dict(qvalue_network.state_dict())
         target = target.to(next(qvalue_network.parameters()).device).requires_grad_(False)
