@@ -6,7 +6,7 @@
 The professional drives ``--steps`` train steps alone (PE-RLHF's warm-up); at every state IDM-MOBIL's action
 (the physics proposal, obstacle-blind or ``--physics-stop``) is recorded beside the mentor's. For each
 ``FIT_STEPS:TAU`` a fresh 5-member ensemble (256x256, the recipe's selector defaults: Adam 3e-4, batch 256,
-target noise 0.1, the paper's mean loss) is fitted with :func:`pe_rlhf.modules.fit_q_ensemble` and
+target noise 0.1, the paper's mean loss) is fitted with :func:`pe_rlhf.objectives.fit_q_ensemble` and
 compared with the data's discounted Monte-Carlo returns (gamma 0.99, cut at the end of the data):
 mean Q vs mean return, their correlation, and the advantage ``mean_k Q_k(s, a_mentor) - Q_k(s, a_phy)``
 on the recorded states: its percentiles, the share of states where it reaches ``--epsilon`` (the
@@ -27,7 +27,8 @@ from tensordict import TensorDict
 
 from pe_rlhf.envs import DrivingConfig, make_gym_env, scene_seeds
 from pe_rlhf.mentors import make_mentor
-from pe_rlhf.modules import QEnsemble, add_next_actions, fit_q_ensemble
+from pe_rlhf.modules import QEnsemble, add_next_actions
+from pe_rlhf.objectives import fit_q_ensemble
 from pe_rlhf.physics import IDMMobilPolicy
 from pe_rlhf.physics.policy import PhysicsConfig
 

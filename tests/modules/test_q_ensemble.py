@@ -9,7 +9,8 @@ import torch
 from tensordict import TensorDict
 from tensordict.nn import EnsembleModule
 
-from pe_rlhf.modules.ensemble_training import add_next_actions, fit_q_ensemble
+from pe_rlhf.modules.ensemble_training import add_next_actions
+from pe_rlhf.objectives.q_ensemble_fit import fit_q_ensemble
 from pe_rlhf.modules.q_ensemble import QEnsemble, load_q_ensemble, save_q_ensemble
 
 OBS, ACT, K = 3, 2, 5

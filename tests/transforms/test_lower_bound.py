@@ -18,7 +18,8 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-from pe_rlhf.modules.ensemble_training import add_next_actions, fit_q_ensemble
+from pe_rlhf.modules.ensemble_training import add_next_actions
+from pe_rlhf.objectives.q_ensemble_fit import fit_q_ensemble
 from pe_rlhf.modules.q_ensemble import QEnsemble
 from pe_rlhf.transforms.selector import HybridActionSelector
 

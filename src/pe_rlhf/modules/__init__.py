@@ -1,8 +1,8 @@
 """Networks: SAC-style actor, critics, and the Q-ensemble estimator."""
 
 from pe_rlhf.modules.networks import QValueNet, make_actor, make_qvalue
-from pe_rlhf.modules.ensemble_training import EnsembleSchedule, add_next_actions, fit_q_ensemble
+from pe_rlhf.modules.ensemble_training import EnsembleSchedule, add_next_actions
 from pe_rlhf.modules.q_ensemble import QEnsemble, load_q_ensemble, q_ensemble_from_critics, save_q_ensemble
 
-__all__ = ["EnsembleSchedule", "QEnsemble", "QValueNet", "add_next_actions", "fit_q_ensemble", "load_q_ensemble", "make_actor",
+__all__ = ["EnsembleSchedule", "QEnsemble", "QValueNet", "add_next_actions", "load_q_ensemble", "make_actor",
            "make_qvalue", "q_ensemble_from_critics", "save_q_ensemble"]

@@ -52,7 +52,8 @@ import torch
 from tqdm import tqdm
 
 from pe_rlhf.evaluation import TorchRLPolicyAdapter, evaluate
-from pe_rlhf.modules import EnsembleSchedule, fit_q_ensemble
+from pe_rlhf.modules import EnsembleSchedule
+from pe_rlhf.objectives import fit_q_ensemble
 from pe_rlhf.threads import torch_threads
 from pe_rlhf.training import builders
 from pe_rlhf.training.checkpoint import capture_rng, restore_rng
