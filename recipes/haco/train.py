@@ -5,9 +5,10 @@
     python recipes/haco/train.py profile=smoke --cfg job   # print the composed config, run nothing
 
 The PE-RLHF recipe (``recipes/pe_rlhf``) with ``physics.enabled=false selector.enabled=false``
-(``config.yaml`` beside this script, a Hydra config over the PE-RLHF recipe's structured config): :class:`~pe_rlhf.transforms.InterventionTransform` without physics or
-selector, and the same :class:`~pe_rlhf.objectives.PERLHFLoss`. The ablation the paper compares PE-RLHF
-against. A bad value prints one line ``error: ...`` and exits 2; ``PE_RLHF_DEBUG=1`` shows the traceback.
+(``config.yaml`` beside this script, a Hydra config over the PE-RLHF recipe's structured config):
+:class:`~pe_rlhf.transforms.InterventionTransform` without physics or selector, and the same
+:class:`~pe_rlhf.objectives.PERLHFLoss`. The ablation the paper compares PE-RLHF against. A bad value prints one line
+``error: ...`` and exits 2; ``PE_RLHF_DEBUG=1`` shows the traceback.
 """
 
 from __future__ import annotations

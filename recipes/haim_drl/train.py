@@ -5,8 +5,9 @@
     python recipes/haim_drl/train.py profile=smoke --cfg job   # print the composed config, run nothing
 
 The PE-RLHF recipe (``recipes/pe_rlhf``) with ``physics.enabled=false selector.enabled=false
-disturbance.enabled=true`` (``config.yaml`` beside this script, a Hydra config over the PE-RLHF recipe's structured config): the takeover transform without
-physics or selector, :class:`~pe_rlhf.transforms.TrafficDisturbanceCost` after it, and
+disturbance.enabled=true`` (``config.yaml`` beside this script, a Hydra config over the PE-RLHF recipe's
+structured config): the takeover transform without physics or selector,
+:class:`~pe_rlhf.transforms.TrafficDisturbanceCost` after it, and
 ``PERLHFLoss`` with a disturbance critic (``loss.disturbance_weight``, ``loss.num_disturbance_qvalue_nets``).
 A bad value prints one line ``error: ...`` and exits 2; ``PE_RLHF_DEBUG=1`` shows the traceback.
 """

@@ -68,7 +68,14 @@ def test_hydra_errors_become_one_line_config_errors():
         load_config(overrides=["optim.lr=1,2"])
     assert "\n" not in str(info.value)
     with pytest.raises(ConfigError, match=r"unknown config key 'optim\.lrr' \(command-line override\)"):
-        compose_file(ROOT / "recipes" / "pe_rlhf" / "config.yaml", ["optim.lrr=1"], None)
+        compose_file(ROOT / "recipes" / "pe_rlhf" / "config.yaml", ["optim.lrr=1"], {}, recipe=True)
+
+
+def test_an_unknown_key_in_a_recipe_file_is_named_before_hydra_composes(tmp_path):
+    (tmp_path / "config.yaml").write_text("defaults:\n  - pe_rlhf_schema\n  - _self_\n  - profile: paper\n"
+                                          "optim:\n  learning_rate: 0.1\n")
+    with pytest.raises(ConfigError, match=r"^unknown config key 'optim\.learning_rate' \(config file .*config\.yaml\)"):
+        load_config(tmp_path / "config.yaml")
 
 
 def test_recipe_flags_are_taken_off_and_the_rest_is_hydras():

@@ -61,7 +61,7 @@ RECIPE_CONFIG = Path("pe_rlhf") / "config.yaml"  # relative to the recipes direc
 # this top-level key; the loaders read it apart from the config values and check it against them.
 ALGORITHM_KEY = "algorithm"
 PROXY_Q_ALGORITHMS = ("pe-rlhf", "haco", "haim-drl")  # this recipe's methods, by registry name
-DEFAULTS_KEY = "defaults"  # a Hydra primary config's defaults list
+DEFAULTS_LIST_KEY = "defaults"  # a Hydra primary config's defaults list
 
 # A person drives at a steady frame rate while the learner runs beside acting (see
 # pe_rlhf.transforms.RealtimePacing, pe_rlhf.training.background_updates); load_config applies these
@@ -115,15 +115,14 @@ def load_config(path: str | Path | None = None, overrides: Iterable[str] = (), *
     path = Path(path) if path is not None else default_config_path()
     recorded = None  # the method a run's saved config records (read_config_file)
     if path is None:
-        cfg = compose_file(Path("<schema>"), overrides, {}, apply_profile=apply_profile)
+        cfg = compose_file(Path("<schema>"), overrides, {}, recipe=False, apply_profile=apply_profile)
     else:
         if not path.is_file():
             raise ConfigError(f"config file {str(path)!r} not found")
         values, recorded = read_config_file(path)
-        recipe = DEFAULTS_KEY in values and apply_profile
-        if DEFAULTS_KEY in values and not apply_profile:
-            values = {k: v for k, v in values.items() if k != DEFAULTS_KEY}
-        cfg = compose_file(path, overrides, None if recipe else values, apply_profile=apply_profile)
+        recipe = DEFAULTS_LIST_KEY in values and apply_profile  # a Hydra primary config, not a run's saved one
+        values = {k: v for k, v in values.items() if k != DEFAULTS_LIST_KEY}
+        cfg = compose_file(path, overrides, values, recipe=recipe, apply_profile=apply_profile)
     cfg = finish_config(cfg, overrides, apply_human_defaults=apply_profile, validate=validate)
     if validate:
         check_recorded_algorithm(recorded, algorithm_name(cfg))

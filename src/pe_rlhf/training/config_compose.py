@@ -44,7 +44,8 @@ HYDRA_SETTINGS = {"run": {"dir": "."}, "output_subdir": None, "job": {"chdir": F
                                      "--compare POLICY (also evaluate e.g. idm-mobil on the same test scenes), "
                                      "--resume DIR [key=value ...] (continue the run in DIR).\n"
                                      "Powered by Hydra (https://hydra.cc); --hydra-help for Hydra's own flags."}}
-HYDRA_DEFAULTS = [{"override hydra/job_logging": "none"}, {"override hydra/hydra_logging": "none"}, "_self_"]
+HYDRA_DEFAULTS_LIST = [{"override hydra/job_logging": "none"}, {"override hydra/hydra_logging": "none"},
+                       "_self_"]
 _LOCK = threading.Lock()  # Hydra's compose state is one global
 
 
@@ -59,7 +60,7 @@ def schema_node() -> DictConfig:
 def store_recipe_configs() -> None:
     """Register the schema (``pe_rlhf_schema``, with :data:`HYDRA_SETTINGS`) and the ``profile`` group."""
     store = ConfigStore.instance()
-    node = OmegaConf.create({"defaults": HYDRA_DEFAULTS, "hydra": HYDRA_SETTINGS, **defaults()})
+    node = OmegaConf.create({"defaults": HYDRA_DEFAULTS_LIST, "hydra": HYDRA_SETTINGS, **defaults()})
     _close(node)
     store.store(name=SCHEMA, node=node)
     for name, values in PROFILES.items():
@@ -94,13 +95,17 @@ def check_overrides(overrides: Iterable[str]) -> list[str]:
     return items
 
 
-def compose_file(path: Path, overrides: list[str], values: Mapping[str, Any] | None, *,
+def compose_file(path: Path, overrides: list[str], values: Mapping[str, Any], *, recipe: bool,
                  apply_profile: bool = True) -> DictConfig:
-    """Compose ``path``: with ``values`` None, a recipe file (a Hydra primary config with a ``defaults`` list);
-    else ``values`` (the file read without its defaults list) over the schema, then its profile (``profile:`` in
-    ``values``; none with ``apply_profile=False``), then ``overrides``. Raises :class:`ConfigError`."""
+    """Compose the config file ``path`` whose values (its ``defaults`` list aside) are ``values``: with ``recipe``,
+    a Hydra primary config (schema, file, profile from its ``defaults`` list); else ``values`` over the schema,
+    then its profile (``profile:`` in ``values``; none with ``apply_profile=False``: a run's saved config). Then
+    ``overrides``. An unknown key in the file fails naming it, before Hydra. Raises :class:`ConfigError`."""
     store_recipe_configs()
-    if values is None:
+    if recipe:
+        schema = schema_node()
+        for key in leaf_keys(values):
+            check_key(schema, key, f"config file {path}")
         return _compose(path.resolve().parent, path.stem, overrides)
     profile = next((i.split("=", 1)[1].strip() for i in reversed(overrides) if override_key(i) == PROFILE_GROUP),
                    values.get(PROFILE_GROUP, defaults()[PROFILE_GROUP]))
