@@ -47,6 +47,7 @@ HYDRA_SETTINGS = {"run": {"dir": "."}, "output_subdir": None, "job": {"chdir": F
 HYDRA_DEFAULTS_LIST = [{"override hydra/job_logging": "none"}, {"override hydra/hydra_logging": "none"},
                        "_self_"]
 _LOCK = threading.Lock()  # Hydra's compose state is one global
+_STORED = False
 
 
 def schema_node() -> DictConfig:
@@ -58,7 +59,12 @@ def schema_node() -> DictConfig:
 
 
 def store_recipe_configs() -> None:
-    """Register the schema (``pe_rlhf_schema``, with :data:`HYDRA_SETTINGS`) and the ``profile`` group."""
+    """Register the schema (``pe_rlhf_schema``, with :data:`HYDRA_SETTINGS`) and the ``profile`` group (once a
+    process: they are constants)."""
+    global _STORED
+    if _STORED:
+        return
+    _STORED = True
     store = ConfigStore.instance()
     node = OmegaConf.create({"defaults": HYDRA_DEFAULTS_LIST, "hydra": HYDRA_SETTINGS, **defaults()})
     _close(node)
