@@ -46,7 +46,7 @@ HYDRA_SETTINGS = {"run": {"dir": "."}, "output_subdir": None, "job": {"chdir": F
                                      "Powered by Hydra (https://hydra.cc); --hydra-help for Hydra's own flags."}}
 HYDRA_DEFAULTS_LIST = [{"override hydra/job_logging": "none"}, {"override hydra/hydra_logging": "none"},
                        "_self_"]
-_LOCK = threading.Lock()  # Hydra's compose state is one global
+_LOCK = threading.RLock()  # Hydra's compose state and the file's ConfigStore entries are globals
 _STORED = False
 
 
@@ -119,11 +119,11 @@ def compose_file(path: Path, overrides: list[str], values: Mapping[str, Any], *,
         raise invalid_value(PROFILE_GROUP, profile, f"allowed: {list(PROFILES)}")
     base = schema_node()
     merge_values(base, values, f"config file {path}")
-    ConfigStore.instance().store(name=_FILE_VALUES, node=base)
     entries: list[Any] = [_FILE_VALUES, "_self_"] + ([{PROFILE_GROUP: profile}] if apply_profile else [])
-    ConfigStore.instance().store(name=_FILE_JOB, node={"defaults": entries})
-    rest = [i for i in overrides if override_key(i) != PROFILE_GROUP]
-    cfg = _compose(None, _FILE_JOB, rest)
+    with _LOCK:  # the file's entries stay this call's until it has composed
+        ConfigStore.instance().store(name=_FILE_VALUES, node=base)
+        ConfigStore.instance().store(name=_FILE_JOB, node={"defaults": entries})
+        cfg = _compose(None, _FILE_JOB, [i for i in overrides if override_key(i) != PROFILE_GROUP])
     cfg.profile = profile
     return cfg
 
