@@ -12,7 +12,7 @@ import pytest
 import yaml
 from omegaconf import OmegaConf
 
-from pe_rlhf.training.config import ConfigError, load_config, to_container
+from pe_rlhf.training.config import ConfigError, finish_config, load_config, to_container
 from pe_rlhf.training.config_compose import compose_file
 from pe_rlhf.training.recipe import RunOptions, parse_command_line
 
@@ -93,3 +93,17 @@ def test_resume_composes_the_saved_config_over_the_schema_without_its_profile(tm
     again = load_config(path, ["collector.total_frames=400"], apply_profile=False)
     assert again.replay_buffer.batch_size == 16 and again.collector.total_frames == 400  # not the profile's 32
     assert to_container(OmegaConf.merge(to_container(cfg), {"collector": {"total_frames": 400}})) == to_container(again)
+
+
+def test_after_composition_a_human_mentor_gets_its_defaults_unless_given():
+    """What ``hydra_task`` does with the config ``@hydra.main`` composed: the overrides Hydra recorded say what
+    was given."""
+    recipe = ROOT / "recipes" / "pe_rlhf" / "config.yaml"
+    composed = compose_file(recipe, ["mentor.name=human"], {}, recipe=True)
+    finished = finish_config(composed, ["mentor.name=human"])
+    assert (finished.collector.realtime_hz, finished.optim.async_updates) == (10.0, True)
+    given = ["mentor.name=human", "collector.realtime_hz=0"]
+    finished = finish_config(compose_file(recipe, given, {}, recipe=True), given)
+    assert (finished.collector.realtime_hz, finished.optim.async_updates) == (0, True)
+    with pytest.raises(ConfigError, match=r"^optim\.lr=-1 is invalid"):
+        finish_config(compose_file(recipe, ["optim.lr=-1"], {}, recipe=True), ["optim.lr=-1"])

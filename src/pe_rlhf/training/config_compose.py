@@ -8,8 +8,9 @@ A recipe's ``config.yaml`` is a Hydra primary config (``recipes/pe_rlhf/config.y
       - profile: paper     # a config group: paper | cpu | quick | smoke (pe_rlhf.training.config_profiles)
 
 :func:`store_recipe_configs` registers ``pe_rlhf_schema`` and the ``profile`` group in Hydra's ConfigStore, with
-the Hydra settings that keep a run where it was started: no change of working directory, no ``outputs/`` or
-``.hydra/`` folder, no log file (``hydra.run.dir: .``, ``hydra.output_subdir: null``, ``hydra/job_logging: none``).
+the Hydra settings that keep a run where it was started: no change of working directory, no ``outputs/``,
+``multirun/`` or ``.hydra/`` folder, no log file (``hydra.run.dir: .``, ``hydra.sweep.dir: .``,
+``hydra.output_subdir: null``, ``hydra/job_logging: none``).
 :func:`compose_file` composes a recipe file (``@hydra.main`` composes the same in a recipe's ``train.py``);
 a file without a ``defaults`` list (a partial file, a run's saved ``config.yaml``) is composed over the schema
 as if it were the recipe's. Hydra's errors become a :class:`ConfigError` of one line that names the field.
@@ -39,7 +40,8 @@ PROFILE_GROUP = "profile"
 _FILE_VALUES = "pe_rlhf_file_values"  # a file without a defaults list, over the schema
 _FILE_JOB = "pe_rlhf_file_job"
 # A run stays where it was started: Hydra neither changes directory nor writes outputs/, .hydra/ or a log file.
-HYDRA_SETTINGS = {"run": {"dir": "."}, "output_subdir": None, "job": {"chdir": False},
+HYDRA_SETTINGS = {"run": {"dir": "."}, "sweep": {"dir": ".", "subdir": "."}, "output_subdir": None,
+                  "job": {"chdir": False},
                   "help": {"footer": "Recipe flags: --out DIR (the run folder; default runs/<method>-<time>), "
                                      "--compare POLICY (also evaluate e.g. idm-mobil on the same test scenes), "
                                      "--resume DIR [key=value ...] (continue the run in DIR).\n"
