@@ -261,9 +261,13 @@ def test_invalid_values_cover_every_group():
 
 def test_non_finite_numbers_are_refused():
     with pytest.raises(ConfigError, match=r"selector\.epsilon_select=nan is invalid: must be a finite number"):
-        load_config(overrides=["selector.epsilon_select=nan"])  # Hydra's override grammar: nan, inf
+        load_config(overrides=["selector.epsilon_select=.nan"])  # YAML's spelling, as before Hydra
     with pytest.raises(ConfigError, match=r"optim\.lr=inf is invalid: must be a finite number > 0"):
-        load_config(overrides=["optim.lr=inf"])
+        load_config(overrides=["optim.lr=.inf"])
+    with pytest.raises(ConfigError, match=r"optim\.lr=inf is invalid: must be a finite number > 0"):
+        load_config(overrides=["optim.lr=inf"])  # Hydra's
+    with pytest.raises(ConfigError, match=r"selector\.epsilon_select=-inf is invalid: must be a finite number"):
+        load_config(overrides=["selector.epsilon_select=-.inf"])
 
 
 def test_env_traffic_density_error_names_the_env_field():

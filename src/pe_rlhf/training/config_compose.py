@@ -86,12 +86,16 @@ def override_key(item: str) -> str:
     return item.split("=", 1)[0].strip().lstrip("+~")
 
 
+# YAML's special floats, which overrides took before Hydra (whose grammar spells them nan, inf, -inf).
+YAML_FLOATS = {".nan": "nan", ".inf": "inf", "+.inf": "inf", "-.inf": "-inf"}
+
+
 def check_overrides(overrides: Iterable[str]) -> list[str]:
-    """The overrides as a list, each ``key=value`` (Hydra's ``+key=value`` and ``~key`` too); a bad profile fails
-    here, naming the profiles."""
+    """The overrides as a list, each ``key=value`` (Hydra's ``+key=value`` and ``~key`` too), a YAML special float
+    (``.nan``, ``.inf``, ``-.inf``) spelled as Hydra reads it; a bad profile fails here, naming the profiles."""
     if isinstance(overrides, str):  # a lone "a=b" would otherwise be iterated character by character
         overrides = [overrides]
-    items = list(overrides)
+    items = [_hydra_float(item) for item in overrides]
     for item in items:
         deletion = isinstance(item, str) and item.startswith("~")
         if not isinstance(item, str) or not override_key(item) or ("=" not in item and not deletion):
@@ -101,6 +105,15 @@ def check_overrides(overrides: Iterable[str]) -> list[str]:
             if profile not in PROFILES:
                 raise invalid_value(PROFILE_GROUP, profile, f"allowed: {list(PROFILES)}")
     return items
+
+
+def _hydra_float(item: Any) -> Any:
+    if isinstance(item, str) and "=" in item:
+        key, value = item.split("=", 1)
+        spelled = YAML_FLOATS.get(value.strip().lower())
+        if spelled is not None:
+            return f"{key}={spelled}"
+    return item
 
 
 def compose_file(path: Path, overrides: list[str], values: Mapping[str, Any], *, recipe: bool,
