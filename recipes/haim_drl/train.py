@@ -2,10 +2,12 @@
 
     python recipes/haim_drl/train.py [profile=cpu|smoke|paper] [group.key=value ...] [--out DIR]
     python recipes/haim_drl/train.py --resume DIR      # continue a killed run from its last checkpoint
+    python recipes/haim_drl/train.py profile=smoke --cfg job   # print the composed config, run nothing
 
 The PE-RLHF recipe (``recipes/pe_rlhf``) with ``physics.enabled=false selector.enabled=false
-disturbance.enabled=true`` (``config.yaml`` beside this script): the takeover transform without
-physics or selector, :class:`~pe_rlhf.transforms.TrafficDisturbanceCost` after it, and
+disturbance.enabled=true`` (``config.yaml`` beside this script, a Hydra config over the PE-RLHF recipe's
+structured config): the takeover transform without physics or selector,
+:class:`~pe_rlhf.transforms.TrafficDisturbanceCost` after it, and
 ``PERLHFLoss`` with a disturbance critic (``loss.disturbance_weight``, ``loss.num_disturbance_qvalue_nets``).
 A bad value prints one line ``error: ...`` and exits 2; ``PE_RLHF_DEBUG=1`` shows the traceback.
 """
@@ -14,14 +16,23 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import hydra
+from omegaconf import DictConfig
+
 from pe_rlhf.training import recipe
 
 CONFIG = Path(__file__).with_name("config.yaml")
 
 
+@hydra.main(config_path=".", config_name="config", version_base=None)
+def train(cfg: DictConfig) -> dict:
+    return recipe.hydra_task(cfg)
+
+
 def main(argv: list[str] | None = None) -> dict:
+    """The command line as a function (tests, ``pe-rlhf sweep``): ``main(["profile=smoke", "--out", "runs/x"])``."""
     return recipe.main(argv, config_path=CONFIG, description=__doc__.splitlines()[0])
 
 
 if __name__ == "__main__":
-    recipe.run_command_line(main)
+    recipe.run_script(train, CONFIG)

@@ -11,7 +11,6 @@ from omegaconf import OmegaConf
 from pe_rlhf.envs.config import DrivingConfig
 from pe_rlhf.training.builders import epsilon_select, warmup_selection
 from pe_rlhf.training.config import (
-    DEFAULTS,
     OPEN_GROUPS,
     PROFILES,
     RULES,
@@ -26,6 +25,7 @@ from pe_rlhf.training.config import (
     to_container,
     validate_config,
 )
+from pe_rlhf.training.config_schema import RecipeConfig, defaults
 
 RECIPE_YAML = Path(__file__).resolve().parents[2] / "recipes" / "pe_rlhf" / "config.yaml"
 HAIM_DRL_YAML = Path(__file__).resolve().parents[2] / "recipes" / "haim_drl" / "config.yaml"
@@ -61,18 +61,25 @@ def test_defaults_load_and_validate_with_the_paper_values():
     assert driving_config(cfg).split == "train"
 
 
-def test_recipe_yaml_equals_the_embedded_defaults():
+def test_recipe_yaml_is_a_hydra_config_over_the_structured_defaults():
+    """The recipe file holds no copy of the defaults: its defaults list names the schema and the profile."""
     assert default_config_path() == RECIPE_YAML
-    assert OmegaConf.to_container(OmegaConf.load(RECIPE_YAML)) == DEFAULTS
+    assert OmegaConf.to_container(OmegaConf.load(RECIPE_YAML)) == {
+        "defaults": ["pe_rlhf_schema", "_self_", {"profile": "paper"}]}
+    assert to_container(load_config()) == defaults() == OmegaConf.to_container(OmegaConf.structured(RecipeConfig))
 
 
-def test_every_field_has_a_validation_rule():
-    assert set(leaves(DEFAULTS)) - set(OPEN_GROUPS) == set(RULES)
+def test_every_field_has_a_validation_rule_its_default_passes():
+    assert set(leaves(defaults())) - set(OPEN_GROUPS) == set(RULES)
+    flat = leaves(defaults())
+    for field, rule in RULES.items():
+        assert rule(flat[field]) is None, (field, flat[field])
 
 
-def test_without_a_recipe_file_the_embedded_defaults_are_used(monkeypatch):
+def test_without_a_recipe_file_the_schema_defaults_are_used(monkeypatch):
     monkeypatch.setattr("pe_rlhf.training.config.default_config_path", lambda: None)
-    assert to_container(load_config()) == DEFAULTS
+    assert to_container(load_config()) == defaults()
+    assert load_config(overrides=["profile=smoke"]).collector.total_frames == 300
 
 
 def test_recipes_env_var_locates_the_file(tmp_path, monkeypatch):
@@ -254,9 +261,13 @@ def test_invalid_values_cover_every_group():
 
 def test_non_finite_numbers_are_refused():
     with pytest.raises(ConfigError, match=r"selector\.epsilon_select=nan is invalid: must be a finite number"):
-        load_config(overrides=["selector.epsilon_select=.nan"])
+        load_config(overrides=["selector.epsilon_select=.nan"])  # YAML's spelling, as before Hydra
     with pytest.raises(ConfigError, match=r"optim\.lr=inf is invalid: must be a finite number > 0"):
         load_config(overrides=["optim.lr=.inf"])
+    with pytest.raises(ConfigError, match=r"optim\.lr=inf is invalid: must be a finite number > 0"):
+        load_config(overrides=["optim.lr=inf"])  # Hydra's
+    with pytest.raises(ConfigError, match=r"selector\.epsilon_select=-inf is invalid: must be a finite number"):
+        load_config(overrides=["selector.epsilon_select=-.inf"])
 
 
 def test_env_traffic_density_error_names_the_env_field():
@@ -306,7 +317,7 @@ def test_method_names():
 def test_haim_drl_recipe_is_haco_with_the_disturbance_cost():
     cfg = load_config(HAIM_DRL_YAML)
     assert method_name(cfg) == "HAIM-DRL"
-    changed = {k: v for k, v in leaves(to_container(cfg)).items() if leaves(DEFAULTS)[k] != v}
+    changed = {k: v for k, v in leaves(to_container(cfg)).items() if leaves(defaults())[k] != v}
     assert changed == {"physics.enabled": False, "selector.enabled": False, "disturbance.enabled": True}
     assert (cfg.disturbance.threshold, cfg.disturbance.horizon) == (5.0, 3.0)  # HAIM-DRL's 5 m/s^2
     assert (cfg.loss.disturbance_weight, cfg.loss.num_disturbance_qvalue_nets) == (1.0, 2)  # its own twin critic

@@ -43,25 +43,27 @@ from pe_rlhf.baselines import imitation_config
 from pe_rlhf.modules.precision import PRECISIONS
 from pe_rlhf.training.config import (
     RECIPES_ENV_VAR,
+    check_env,
+    check_key,
+    check_recorded_algorithm,
+    leaf_keys,
+    merge_values,
+    parse_overrides,
+    read_config_file,
+)
+from pe_rlhf.training.config_rules import (
     SPLITS,
     WANDB_MODES,
     ConfigError,
-    rule_bool,
-    check_env,
-    check_key,
-    rule_choice,
     invalid_value,
+    rule_bool,
+    rule_choice,
     rule_hidden,
     rule_int,
-    leaf_keys,
-    merge_values,
     rule_number,
     rule_optional,
-    parse_overrides,
     rule_string,
     rule_target_entropy,
-    check_recorded_algorithm,
-    read_config_file,
 )
 
 

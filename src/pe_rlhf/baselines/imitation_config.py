@@ -21,7 +21,7 @@ from typing import Any
 
 from omegaconf import DictConfig
 
-from pe_rlhf.training.config import (
+from pe_rlhf.training.config_rules import (
     rule_choice,
     invalid_value,
     rule_hidden,
