@@ -322,3 +322,19 @@ def test_a_lane_change_the_mentor_did_not_plan_becomes_its_plan(test_env, adopt)
     assert ego_lane_slot(env)[0] == other
     driver(env)
     assert driver.target_lane == (other if adopt else before)
+
+
+def test_manoeuvre_names_the_wrong_manoeuvre_under_way(empty_env):
+    """``manoeuvre`` is None for a mentor that never errs, and the kind of error while one lasts (3-10 steps)."""
+    careful = SimulatedMentor(preset("professional"), seed=0)
+    erring = SimulatedMentor(dataclasses.replace(preset("amateur"), error_rate=1.0, fatigue_rate=0.0), seed=0)
+    for mentor in (careful, erring):
+        _reset(empty_env, mentor, STRAIGHT_SCENE)
+    kinds = []
+    for _ in range(12):
+        careful.act(empty_env)
+        erring.act(empty_env)
+        kinds.append(erring.manoeuvre)
+        assert careful.manoeuvre is None
+        empty_env.step(erring.last_action)
+    assert set(kinds) - {None} and set(kinds) <= {"steer", "brake", "throttle", None}

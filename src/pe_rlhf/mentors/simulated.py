@@ -184,6 +184,11 @@ class SimulatedMentor(Mentor):
         self._new_episode(getattr(getattr(env, "unwrapped", env), "road", None))
 
     @property
+    def manoeuvre(self) -> str | None:
+        """The kind of wrong manoeuvre under way (``"steer"``, ``"brake"``, ``"throttle"``, ``"seek"``), else None."""
+        return None if self._manoeuvre is None else str(self._manoeuvre["kind"])
+
+    @property
     def fatigue(self) -> float:
         """The current noise/error multiplier (>= 1)."""
         p = self.profile
