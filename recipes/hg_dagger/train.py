@@ -5,7 +5,7 @@
     python recipes/hg_dagger/train.py profile=smoke --cfg job   # print the composed config, run nothing
 
 TorchRL's layout: ``config.yaml`` beside this script (a Hydra config over the structured config
-:class:`~pe_rlhf.baselines.config_schema.HGDaggerConfig`); the ``@hydra.main`` function hands the composed config to
+:class:`~pe_rlhf.baselines.imitation_schema.HGDaggerConfig`); the ``@hydra.main`` function hands the composed config to
 :func:`pe_rlhf.baselines.cli.hydra_task`. A bad value prints one line ``error: ...`` and exits 2; ``PE_RLHF_DEBUG=1``
 shows the traceback.
 """
