@@ -94,8 +94,11 @@ def check_outputs(out: Path, method: str) -> list[dict[str, float]]:
 
 
 @pytest.mark.parametrize("method", list(METHODS))
-def test_recipe_config_yaml_holds_the_defaults(method):
-    assert OmegaConf.to_container(OmegaConf.load(ROOT / "recipes" / method / "config.yaml")) == default_config(method)
+def test_recipe_config_yaml_composes_the_structured_config_and_holds_no_copy_of_it(method):
+    recipe = ROOT / "recipes" / method / "config.yaml"
+    assert OmegaConf.to_container(OmegaConf.load(recipe)) == {"defaults": [f"{method}_schema", "_self_",
+                                                                            {"profile": "paper"}]}
+    assert OmegaConf.to_container(load_baseline_config(method, recipe)) == default_config(method)
 
 
 @pytest.mark.parametrize("method, override, field", [

@@ -1,9 +1,10 @@
 """The paper's baselines on the driving env: RL and safe RL (SAC-RS, SAC-Lag, PPO-RS, PPO-Lag, CPO), offline
 RL and imitation (BC, CQL, GAIL) and human-in-the-loop imitation (HG-DAgger, IWR).
 
-Each is a recipe (``recipes/<method>/config.yaml`` + a two-line ``train.py``) over these shared parts:
-:mod:`~pe_rlhf.baselines.config` (defaults, profiles, validation; the imitation methods' in
-:mod:`~pe_rlhf.baselines.imitation_config`), :mod:`~pe_rlhf.baselines.algorithms` (the RL learners: TorchRL's
+Each is a recipe (``recipes/<method>/config.yaml`` + a thin ``@hydra.main`` ``train.py``) over these shared parts:
+:mod:`~pe_rlhf.baselines.config_schema` (each method's structured config: every field's default, type and rule),
+:mod:`~pe_rlhf.baselines.config_profiles`, :mod:`~pe_rlhf.baselines.config` (Hydra composition, validation),
+:mod:`~pe_rlhf.baselines.algorithms` (the RL learners: TorchRL's
 SAC/ClipPPO losses and pe_rlhf's SAC-Lag/PPO-Lag/CPO losses), :mod:`~pe_rlhf.baselines.imitation` (BC loss,
 HG-DAgger's gate, IWR's weights, GAIL's discriminator) and :mod:`~pe_rlhf.baselines.imitation_learners`
 (GAIL, HG-DAgger, IWR), :mod:`~pe_rlhf.baselines.offline` (BC and CQL on demonstrations),

@@ -1,4 +1,4 @@
-"""Hydra composition of a proxy-Q recipe's config: the schema, the recipe's ``config.yaml``, its profile, the overrides.
+"""Hydra composition of a recipe's config: the schema, the recipe's ``config.yaml``, its profile, the overrides.
 
 A recipe's ``config.yaml`` is a Hydra primary config (``recipes/pe_rlhf/config.yaml``)::
 
@@ -7,10 +7,14 @@ A recipe's ``config.yaml`` is a Hydra primary config (``recipes/pe_rlhf/config.y
       - _self_             # this file's values
       - profile: paper     # a config group: paper | cpu | quick | smoke (pe_rlhf.training.config_profiles)
 
-:func:`store_recipe_configs` registers ``pe_rlhf_schema`` and the ``profile`` group in Hydra's ConfigStore, with
-the Hydra settings that keep a run where it was started: no change of working directory, no ``outputs/``,
-``multirun/`` or ``.hydra/`` folder, no log file (``hydra.run.dir: .``, ``hydra.sweep.dir: .``,
-``hydra.output_subdir: null``, ``hydra/job_logging: none``).
+A :class:`RecipeSchema` names a family's structured config and its profiles: :data:`PROXY_Q` (the default
+everywhere here) for PE-RLHF, HACO and HAIM-DRL; each baseline has its own (``sac_lag_schema``, ...:
+:mod:`pe_rlhf.baselines.config`). :func:`store_recipe_configs` registers a schema and its ``profile`` group in
+Hydra's ConfigStore, with the Hydra settings that keep a run where it was started: no change of working
+directory, no ``outputs/``, ``multirun/`` or ``.hydra/`` folder, no log file (``hydra.run.dir: .``,
+``hydra.sweep.dir: .``, ``hydra.output_subdir: null``, ``hydra/job_logging: none``). Every family's profiles are
+the one ``profile`` group (``profile=smoke`` on any recipe's command line), so the group holds the profiles of
+the schema composed last; each composition registers its own under the lock it composes under.
 :func:`compose_file` composes a recipe file (``@hydra.main`` composes the same in a recipe's ``train.py``);
 a file without a ``defaults`` list (a partial file, a run's saved ``config.yaml``) is composed over the schema
 as if it were the recipe's. Hydra's errors become a :class:`ConfigError` of one line that names the field.
@@ -19,7 +23,8 @@ as if it were the recipe's. Hydra's errors become a :class:`ConfigError` of one 
 from __future__ import annotations
 
 import threading
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -49,36 +54,57 @@ HYDRA_SETTINGS = {"run": {"dir": "."}, "sweep": {"dir": ".", "subdir": "."}, "ou
 HYDRA_DEFAULTS_LIST = [{"override hydra/job_logging": "none"}, {"override hydra/hydra_logging": "none"},
                        "_self_"]
 _LOCK = threading.RLock()  # Hydra's compose state and the file's ConfigStore entries are globals
-_STORED = False
 
 
-def schema_node() -> DictConfig:
-    """The schema's defaults as a DictConfig: closed groups (an unknown key fails) but :data:`OPEN_GROUPS`; not
+@dataclass(frozen=True, eq=False)
+class RecipeSchema:
+    """A recipe family's structured config as Hydra composes it: ``name`` in the ConfigStore, ``defaults`` (the
+    schema's values as a new plain dict each call), ``profiles`` (``{profile: values}``, the ``profile`` group)
+    and ``open_groups`` (free-form groups, checked by name after composition)."""
+
+    name: str
+    defaults: Callable[[], dict[str, Any]]
+    profiles: Mapping[str, Mapping[str, Any]]
+    open_groups: tuple[str, ...] = OPEN_GROUPS
+
+
+PROXY_Q = RecipeSchema(SCHEMA, defaults, PROFILES)  # PE-RLHF, HACO, HAIM-DRL
+_STORED: set[str] = set()  # the schemas registered in this process (they are constants)
+_PROFILES_OF: str | None = None  # the schema whose profiles the profile group holds
+
+
+def schema_node(schema: RecipeSchema = PROXY_Q) -> DictConfig:
+    """The schema's defaults as a DictConfig: closed groups (an unknown key fails) but its open groups; not
     typed (the rules check every value after composition)."""
-    cfg = OmegaConf.create(defaults())
-    _close(cfg)
+    cfg = OmegaConf.create(schema.defaults())
+    _close(cfg, schema)
     return cfg
 
 
-def store_recipe_configs() -> None:
-    """Register the schema (``pe_rlhf_schema``, with :data:`HYDRA_SETTINGS`) and the ``profile`` group (once a
-    process: they are constants)."""
-    global _STORED
-    if _STORED:
-        return
-    _STORED = True
-    store = ConfigStore.instance()
-    node = OmegaConf.create({"defaults": HYDRA_DEFAULTS_LIST, "hydra": HYDRA_SETTINGS, **defaults()})
-    _close(node)
-    store.store(name=SCHEMA, node=node)
-    for name, values in PROFILES.items():
-        store.store(group=PROFILE_GROUP, name=name, node={**values, "profile": name}, package="_global_")
+def store_recipe_configs(schema: RecipeSchema = PROXY_Q) -> None:
+    """Register ``schema`` (once a process, with :data:`HYDRA_SETTINGS`) and its profiles as the ``profile``
+    group (in place of another family's)."""
+    global _PROFILES_OF
+    with _LOCK:
+        store = ConfigStore.instance()
+        if schema.name not in _STORED:
+            _STORED.add(schema.name)
+            node = OmegaConf.create({"defaults": HYDRA_DEFAULTS_LIST, "hydra": HYDRA_SETTINGS, **schema.defaults()})
+            _close(node, schema)
+            store.store(name=schema.name, node=node)
+        if _PROFILES_OF != schema.name:
+            store.repo.pop(PROFILE_GROUP, None)  # another family's: a profile it has and this one lacks goes too
+            for name, values in schema.profiles.items():
+                store.store(group=PROFILE_GROUP, name=name, node={**values, "profile": name}, package="_global_")
+            _PROFILES_OF = schema.name
 
 
-def _close(cfg: DictConfig) -> None:
+def _close(cfg: DictConfig, schema: RecipeSchema) -> None:
     OmegaConf.set_struct(cfg, True)
-    for group in OPEN_GROUPS:
-        OmegaConf.set_struct(OmegaConf.select(cfg, group), False)
+    for group in schema.open_groups:
+        node = OmegaConf.select(cfg, group)
+        if node is not None:
+            OmegaConf.set_struct(node, False)
 
 
 def override_key(item: str) -> str:
@@ -90,9 +116,10 @@ def override_key(item: str) -> str:
 YAML_FLOATS = {".nan": "nan", ".inf": "inf", "+.inf": "inf", "-.inf": "-inf"}
 
 
-def check_overrides(overrides: Iterable[str]) -> list[str]:
+def check_overrides(overrides: Iterable[str], profiles: Mapping[str, Any] = PROFILES) -> list[str]:
     """The overrides as a list, each ``key=value`` (Hydra's ``+key=value`` and ``~key`` too), a YAML special float
-    (``.nan``, ``.inf``, ``-.inf``) spelled as Hydra reads it; a bad profile fails here, naming the profiles."""
+    (``.nan``, ``.inf``, ``-.inf``) spelled as Hydra reads it; a profile not in ``profiles`` fails here, naming
+    them."""
     if isinstance(overrides, str):  # a lone "a=b" would otherwise be iterated character by character
         overrides = [overrides]
     items = [_hydra_float(item) for item in overrides]
@@ -102,8 +129,8 @@ def check_overrides(overrides: Iterable[str]) -> list[str]:
             raise ConfigError(f"override {item!r} is not of the form key=value (e.g. optim.lr=3e-4)")
         if override_key(item) == PROFILE_GROUP and "=" in item:
             profile = item.split("=", 1)[1].strip()
-            if profile not in PROFILES:
-                raise invalid_value(PROFILE_GROUP, profile, f"allowed: {list(PROFILES)}")
+            if profile not in profiles:
+                raise invalid_value(PROFILE_GROUP, profile, f"allowed: {list(profiles)}")
     return items
 
 
@@ -117,34 +144,34 @@ def _hydra_float(item: Any) -> Any:
 
 
 def compose_file(path: Path, overrides: list[str], values: Mapping[str, Any], *, recipe: bool,
-                 apply_profile: bool = True) -> DictConfig:
+                 apply_profile: bool = True, schema: RecipeSchema = PROXY_Q) -> DictConfig:
     """Compose the config file ``path`` whose values (its ``defaults`` list aside) are ``values``: with ``recipe``,
-    a Hydra primary config (schema, file, profile from its ``defaults`` list); else ``values`` over the schema,
+    a Hydra primary config (schema, file, profile from its ``defaults`` list); else ``values`` over ``schema``,
     then its profile (``profile:`` in ``values``; none with ``apply_profile=False``: a run's saved config). Then
     ``overrides``. An unknown key in the file fails naming it, before Hydra. Raises :class:`ConfigError`."""
-    store_recipe_configs()
     if recipe:
-        schema = schema_node()
+        base = schema_node(schema)
         for key in leaf_keys(values):
-            check_key(schema, key, f"config file {path}")
-        return _compose(path.resolve().parent, path.stem, overrides)
+            check_key(base, key, f"config file {path}")
+        return _compose(path.resolve().parent, path.stem, overrides, schema)
     profile = next((i.split("=", 1)[1].strip() for i in reversed(overrides) if override_key(i) == PROFILE_GROUP),
-                   values.get(PROFILE_GROUP, defaults()[PROFILE_GROUP]))
-    if profile not in PROFILES:
-        raise invalid_value(PROFILE_GROUP, profile, f"allowed: {list(PROFILES)}")
-    base = schema_node()
+                   values.get(PROFILE_GROUP, schema.defaults()[PROFILE_GROUP]))
+    if profile not in schema.profiles:
+        raise invalid_value(PROFILE_GROUP, profile, f"allowed: {list(schema.profiles)}")
+    base = schema_node(schema)
     merge_values(base, values, f"config file {path}")
     entries: list[Any] = [_FILE_VALUES, "_self_"] + ([{PROFILE_GROUP: profile}] if apply_profile else [])
     with _LOCK:  # the file's entries stay this call's until it has composed
         ConfigStore.instance().store(name=_FILE_VALUES, node=base)
         ConfigStore.instance().store(name=_FILE_JOB, node={"defaults": entries})
-        cfg = _compose(None, _FILE_JOB, [i for i in overrides if override_key(i) != PROFILE_GROUP])
+        cfg = _compose(None, _FILE_JOB, [i for i in overrides if override_key(i) != PROFILE_GROUP], schema)
     cfg.profile = profile
     return cfg
 
 
-def _compose(config_dir: Path | None, name: str, overrides: list[str]) -> DictConfig:
+def _compose(config_dir: Path | None, name: str, overrides: list[str], schema: RecipeSchema) -> DictConfig:
     with _LOCK:
+        store_recipe_configs(schema)
         backup = get_gh_backup()  # inside @hydra.main (a run loading another run's config) Hydra is initialized
         GlobalHydra.instance().clear()
         try:
@@ -214,5 +241,5 @@ def merge_values(cfg: DictConfig, values: Mapping | DictConfig, origin: str) -> 
         raise ConfigError(f"cannot apply {origin}: {e}") from e
 
 
-__all__ = ["HYDRA_SETTINGS", "PROFILE_GROUP", "SCHEMA", "check_key", "check_overrides", "compose_file", "leaf_keys",
+__all__ = ["HYDRA_SETTINGS", "PROFILE_GROUP", "PROXY_Q", "SCHEMA", "RecipeSchema", "check_key", "check_overrides", "compose_file", "leaf_keys",
            "merge_values", "override_key", "schema_node", "store_recipe_configs"]

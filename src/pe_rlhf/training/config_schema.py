@@ -55,9 +55,11 @@ def knob(default: Any, rule: Rule) -> Any:
     return field(default=default, metadata={"rule": rule})
 
 
-def open_group(default: dict[str, Any]) -> Any:
-    """A free-form group (any key; checked by name in :func:`~pe_rlhf.training.config.validate_config`)."""
-    return field(default_factory=lambda: copy.deepcopy(default), metadata={"open": True})
+def open_group(default: dict[str, Any], rule: Rule | None = None) -> Any:
+    """A free-form group (any key; checked by name in :func:`~pe_rlhf.training.config.validate_config`), with
+    ``rule`` for the group as a whole if given."""
+    metadata = {"open": True} if rule is None else {"open": True, "rule": rule}
+    return field(default_factory=lambda: copy.deepcopy(default), metadata=metadata)
 
 
 # HybridActionSelector keeps the mentor iff mean_k[Q_k(s, a_mentor) - Q_k(s, a_phy)] >= epsilon_select.

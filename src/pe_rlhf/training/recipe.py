@@ -8,7 +8,8 @@ Hydra sees the command line: ``--out DIR`` (the run folder; default ``runs/<meth
 and ``--resume DIR [key=value ...]`` (continue the run in DIR from its saved ``config.yaml``, which is composed over
 the schema without its profile). Hydra neither changes the working directory nor writes an output folder or log
 (:data:`~pe_rlhf.training.config_compose.HYDRA_SETTINGS`). ``main(argv)`` is the same command line as a function
-(tests, ``pe-rlhf sweep``).
+(tests, ``pe-rlhf sweep``). The baseline recipes (``recipes/sac_rs``, ...) use the same functions with their own
+composition and training (:mod:`pe_rlhf.baselines.cli`: the ``schema``, ``load`` and ``train`` arguments).
 
 Outputs in the run folder: ``config.yaml`` (resolved, with the method's registry name as ``algorithm:``),
 ``metrics.csv``, ``checkpoints/``, ``final_eval.json`` (with ``"algorithm"``), ``training_curves.png``, ``actor.pt``, ``test_episode.gif`` (with ``eval.video``) and
@@ -24,6 +25,7 @@ variable, not a flag: the command line is the run's config overrides). Called as
 
 from __future__ import annotations
 
+import functools
 import sys
 import time
 from collections.abc import Callable
@@ -43,7 +45,7 @@ from pe_rlhf.training.config import (
     save_config,
     to_container,
 )
-from pe_rlhf.training.config_compose import store_recipe_configs
+from pe_rlhf.training.config_compose import PROXY_Q, RecipeSchema, store_recipe_configs
 from pe_rlhf.training.metrics_logger import MetricsLogger
 from pe_rlhf.training.plots import plot_learning_curves
 from pe_rlhf.training.trainer import evaluate_reference, registered_policies, train
@@ -69,6 +71,9 @@ class RunOptions:
 
 
 _SCRIPT_OPTIONS = RunOptions()  # what run_script parsed, for the @hydra.main function it calls
+# load(options, overrides) -> the run's validated config; train(cfg, options) -> the final evaluation
+Loader = Callable[[RunOptions, list[str]], DictConfig]
+Trainer = Callable[[DictConfig, RunOptions], dict]
 
 
 def run_command_line(main: Callable[..., object], *args: object) -> None:
@@ -116,15 +121,17 @@ def _is_number(text: str) -> bool:
 
 
 def main(argv: list[str] | None = None, *, config_path: str | Path | None = None,
-         description: str | None = None) -> dict:
+         description: str | None = None, load: Loader | None = None, train: Trainer | None = None) -> dict:
     """Run a recipe: ``config_path`` is its ``config.yaml`` (None: ``recipes/pe_rlhf/config.yaml``,
-    see :func:`~pe_rlhf.training.config.load_config`); ``argv`` as on the command line (Hydra's flags aside)."""
+    see :func:`~pe_rlhf.training.config.load_config`); ``argv`` as on the command line (Hydra's flags aside).
+    ``load`` and ``train`` replace :func:`load_run_config` and :func:`run` (a baseline's)."""
     options, overrides = parse_command_line(sys.argv[1:] if argv is None else list(argv), description)
     hydra_flags = [a for a in overrides if a.startswith("-") and not _is_number(a)]
     if hydra_flags:
         raise ConfigError(f"{' '.join(hydra_flags)}: Hydra's flags are for the recipe script "
                           "(python recipes/<method>/train.py), not main(argv)")
-    return run(load_run_config(options, overrides, config_path), options)
+    load = load or functools.partial(load_run_config, config_path=config_path)
+    return (train or run)(load(options, overrides), options)
 
 
 def load_run_config(options: RunOptions, overrides: list[str], config_path: str | Path | None) -> DictConfig:
@@ -135,23 +142,27 @@ def load_run_config(options: RunOptions, overrides: list[str], config_path: str 
     return load_config(config_path, overrides=overrides)
 
 
-def run_script(task: Callable[[], object], config_path: str | Path) -> None:
+def run_script(task: Callable[[], object], config_path: str | Path, *, schema: RecipeSchema = PROXY_Q,
+               load: Loader | None = None, train: Trainer | None = None) -> None:
     """A recipe script's ``__main__``: take the recipe flags (:class:`RunOptions`) off ``sys.argv``, compose and
     check the config (a ConfigError is one ``error:`` line, exit 2), then call ``task``, the script's
     ``@hydra.main`` function, which Hydra hands the composed config (:func:`hydra_task`). With ``--resume DIR``
-    the run folder's config is used instead, without Hydra's command line."""
+    the run folder's config is used instead, without Hydra's command line. ``schema`` is the structured config
+    the script's ``config.yaml`` names; ``load`` and ``train`` replace :func:`load_run_config` and :func:`run`."""
     global _SCRIPT_OPTIONS
-    store_recipe_configs()
+    store_recipe_configs(schema)
+    load = load or functools.partial(load_run_config, config_path=config_path)
     try:
         options, rest = parse_command_line(sys.argv[1:])
         hydra_flags = [a for a in rest if a.startswith("-") and not _is_number(a)]
         if options.resume or not hydra_flags:  # composed here first, so that a bad value is one line
-            cfg = load_run_config(options, rest, config_path)
+            cfg = load(options, rest)
         if options.resume:
-            run(cfg, options)
+            (train or run)(cfg, options)
             return
         _SCRIPT_OPTIONS = options
         sys.argv = [sys.argv[0], *rest]
+        store_recipe_configs(schema)  # its profile group, whichever family load composed last
         task()
     except ConfigError as e:
         if debug_requested():
@@ -159,19 +170,21 @@ def run_script(task: Callable[[], object], config_path: str | Path) -> None:
         fail(str(e))
 
 
-def hydra_task(cfg: DictConfig) -> dict:
-    """The body of a recipe's ``@hydra.main`` function: finish the composed ``cfg`` (``mentor.name=human``'s
-    defaults; every rule), then :func:`run` it with the flags :func:`run_script` took."""
+def hydra_task(cfg: DictConfig, *, finish: Callable[[DictConfig, list[str]], DictConfig] = finish_config,
+               train: Trainer | None = None) -> dict:
+    """The body of a recipe's ``@hydra.main`` function: ``finish`` the composed ``cfg`` (the proxy-Q recipes':
+    ``mentor.name=human``'s defaults; every rule), then :func:`run` (or ``train``) it with the flags
+    :func:`run_script` took."""
     from hydra.core.hydra_config import HydraConfig
 
     overrides = list(HydraConfig.get().overrides.task) if HydraConfig.initialized() else []
     try:
-        cfg = finish_config(cfg, overrides)
+        cfg = finish(cfg, overrides)
     except ConfigError as e:
         if debug_requested():
             raise
         fail(str(e))
-    return run(cfg, _SCRIPT_OPTIONS)
+    return (train or run)(cfg, _SCRIPT_OPTIONS)
 
 
 def run(cfg: DictConfig, options: RunOptions = RunOptions()) -> dict:
