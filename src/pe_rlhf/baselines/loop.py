@@ -12,7 +12,7 @@ Top to bottom in :meth:`BaselineRun.collect` / :meth:`BaselineRun.iteration`:
 3. the learner's ``learn`` (:mod:`pe_rlhf.baselines.algorithms`) does the method's update(s);
 4. one ``metrics.csv`` row: ``env_steps``, ``wall_time``, ``train/*`` (episode return and cost, totals,
    ``lambda``), ``loss/*``; every ``eval.every_frames`` a deterministic evaluation on ``eval.split``
-   (``eval/*``); every ``checkpoint.every_frames`` a checkpoint (:mod:`pe_rlhf.training.checkpoint`:
+   (``eval/*``); every ``checkpoint.every_frames`` a checkpoint (:mod:`pe_rlhf.runtime.checkpoint`:
    networks, optimisers, ``lambda``, the replay buffer, RNG states, counters), which ``--resume`` continues.
 
 The run ends with a checkpoint, the final evaluation and ``actor.pt`` (``weights_only`` loadable into
@@ -80,7 +80,7 @@ class BaselineRun:
 
     # -- checkpoints --------------------------------------------------------------------------
     def save(self) -> Path:
-        from pe_rlhf.training.checkpoint import save_checkpoint
+        from pe_rlhf.runtime.checkpoint import save_checkpoint
 
         buffers = {name: compact_copy(b) for name, b in self.learner.replay_buffers.items()}
         seconds = dict(self.seconds, earlier_sessions=self.wall_time())
@@ -94,7 +94,7 @@ class BaselineRun:
 
     def resume(self) -> None:
         """Load the newest checkpoint; the episode in progress when it was written is lost (a new one starts)."""
-        from pe_rlhf.training.checkpoint import STATE, find_checkpoint, load_checkpoint
+        from pe_rlhf.runtime.checkpoint import STATE, find_checkpoint, load_checkpoint
 
         ckpt = find_checkpoint(self.checkpoint_dir)
         if ckpt is None:

@@ -136,7 +136,7 @@ class OfflineRun:
 
     # -- checkpoints --------------------------------------------------------------------------
     def save(self) -> Path:
-        from pe_rlhf.training.checkpoint import save_checkpoint
+        from pe_rlhf.runtime.checkpoint import save_checkpoint
 
         state = {"iterations": self.iterations, "seconds": dict(self.seconds, earlier_sessions=self.wall_time()),
                  "env_config": self.env_config.to_dict()}
@@ -146,7 +146,7 @@ class OfflineRun:
         return path
 
     def resume(self) -> None:
-        from pe_rlhf.training.checkpoint import load_checkpoint
+        from pe_rlhf.runtime.checkpoint import load_checkpoint
 
         state = load_checkpoint(self.checkpoint_dir, modules=self.learner.modules, optimizers=self.learner.optimizers)
         if state.get("env_config") != self.env_config.to_dict():

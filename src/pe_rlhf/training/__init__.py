@@ -1,1 +1,1 @@
-"""Training: recipe helpers shared by the recipes (config, builders, logging, checkpoints)."""
+"""Training: recipe helpers shared by the recipes (config, builders, logging; checkpoints are :mod:`pe_rlhf.runtime`'s)."""

@@ -56,7 +56,7 @@ from pe_rlhf.modules import EnsembleSchedule
 from pe_rlhf.objectives import fit_q_ensemble
 from pe_rlhf.threads import torch_threads
 from pe_rlhf.training import builders
-from pe_rlhf.training.checkpoint import capture_rng, restore_rng
+from pe_rlhf.runtime.checkpoint import capture_rng, restore_rng
 from pe_rlhf.training.collection_state import capture_collection, restore_collection
 from pe_rlhf.training.config import algorithm_name, method_name
 from pe_rlhf.training.steps import batch_metrics, ensemble_transitions, relabel_warmup
@@ -286,7 +286,7 @@ class _Run:
     def resume(self) -> tuple[list[JournalEntry], JournalEntry | None]:
         """Load the newest checkpoint; return the journal entries written after it, and the pending
         file that continues them (None if there is none)."""
-        from pe_rlhf.training.checkpoint import find_checkpoint, load_checkpoint
+        from pe_rlhf.runtime.checkpoint import find_checkpoint, load_checkpoint
 
         state = load_checkpoint(self.checkpoint_dir, **self.objects)
         check_resumable(state.get("run"), self.run_info(), find_checkpoint(self.checkpoint_dir))
@@ -413,7 +413,7 @@ class _Run:
     def save(self) -> Path:
         """A checkpoint of everything at the current frame count (call with the learner paused or stopped);
         journal files it makes redundant are deleted."""
-        from pe_rlhf.training.checkpoint import save_checkpoint
+        from pe_rlhf.runtime.checkpoint import save_checkpoint
 
         c = self.counters
         c.updates = self.updates0 + self.updater.updates_done
