@@ -138,8 +138,8 @@ class OfflineLearner(Learner):
         return {k.split("/", 1)[1]: round(v, 3) for k, v in row.items() if k.startswith("loss/")}
 
     def summary(self, out_dir: Path) -> dict:
-        training = {"env_steps": 0, "updates": self.progress, "episodes": 0, "safety_violations": 0.0, **self.totals,
-                    "mentor_data_total": self.totals["demo_steps"], "mentor_data_share": 1.0}
+        training = {"env_steps": 0, "updates": self.progress, "episodes": 0, "safety_violations": 0.0,
+                    **self.totals, "mentor_data_total": self.totals["demo_steps"], "mentor_data_share": 1.0}
         return {"method": self.method.name, "algorithm": algorithm_name(str(self.cfg.method)), "training": training}
 
 

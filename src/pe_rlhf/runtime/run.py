@@ -38,45 +38,29 @@ EVAL_KEYS = ("episodic_return", "success_rate", "safety_violation", "travel_dist
 class Learner:
     """What a method plugs into :class:`Run`; the hooks defined here are optional.
 
-    A learner has ``name`` (the progress bar's label), ``env_config`` (its
-    :class:`~pe_rlhf.envs.DrivingConfig`), ``actor`` (evaluated deterministically, saved as ``actor.pt``),
-    ``progress`` (frames, or updates offline: the step of rows and checkpoints) and the methods below
-    without a body here. With ``timers`` (the names of "waiting for a batch" and "learning"), the run times
-    both, and its evaluations, as ``time/<name>_seconds`` over every session of the run.
+    A learner has ``name`` (the progress bar's label), ``env_config`` (its :class:`~pe_rlhf.envs.DrivingConfig`),
+    ``actor`` (evaluated deterministically, saved as ``actor.pt``), ``progress`` (frames, or updates offline: the
+    step of rows and checkpoints), and ``batches()`` (the work, one item per ``learn``; it stops when the run is
+    complete), ``learn(batch)`` (returns the batch's row of metrics), ``checkpoint_objects(checkpoint=None)``
+    (``modules``, ``optimizers`` and ``replay_buffers`` to save, or to load ``checkpoint`` into),
+    ``load_state_dict(state)`` (``state["step"]`` is its progress) and ``summary(out_dir)`` (what
+    ``final_eval.json`` adds to the final evaluation: ``algorithm``, ``training`` totals, ...). With ``timers``
+    (the names of waiting for a batch and of learning) the run times both, and its evaluations, as
+    ``time/<name>_seconds`` across the run's sessions.
     """
 
-    unit = "frame"
-    timers: tuple[str, ...] = ()
+    unit, timers = "frame", ()
     checkpoint_requested = False  # set by ``learn``: a checkpoint after this batch, whatever the cadence
-
-    def batches(self):
-        """The work, one item per ``learn`` call; the iterator stops when the run is complete."""
-        raise NotImplementedError
-
-    def learn(self, batch) -> dict[str, float]:
-        """Learn from one item of :meth:`batches`; returns its row of metrics."""
-        raise NotImplementedError
-
-    def checkpoint_objects(self, checkpoint: Path | None = None) -> dict:
-        """``modules``, ``optimizers`` (and ``replay_buffers``) to save, or to load ``checkpoint`` into."""
-        raise NotImplementedError
 
     def state_dict(self) -> dict:
         return {}
 
-    def load_state_dict(self, state: dict) -> None:
-        """Continue from a checkpoint's state (``state["step"]``: its progress)."""
-        raise NotImplementedError
-
-    def summary(self, out_dir: Path) -> dict:
-        """What ``final_eval.json`` adds to the final evaluation (``algorithm``, ``training`` totals, ...)."""
-        raise NotImplementedError
-
     def pretrain(self) -> dict[str, float] | None:
+        """A fresh run's row at step 0, or None."""
         return None
 
     def start(self) -> None:
-        pass
+        """Before the first batch of this session."""
 
     def paused(self):
         """Around periodic evaluations and checkpoints: no update runs inside (a learner thread's)."""
@@ -86,9 +70,10 @@ class Learner:
         """Before the finish (``finish``: run the updates still owed) or after an error."""
 
     def saved(self, step: int) -> None:
-        """Called after each checkpoint."""
+        """After each checkpoint, at ``step``."""
 
     def postfix(self, row: dict[str, float]) -> dict:
+        """The progress bar's postfix."""
         return {}
 
 

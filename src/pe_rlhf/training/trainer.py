@@ -260,7 +260,7 @@ class ProxyQLearner(Learner):
         if self.journal is None:
             return
         self.journaled = self.journal.entries_after(int(state["step"]))
-        self.journaled_pending = self.journal.pending_at(self.journaled[-1].end if self.journaled else int(state["step"]))
+        self.journaled_pending = self.journal.pending_at(self.journaled[-1].end if self.journaled else state["step"])
         if self.journaled or self.journaled_pending is not None:  # collection went on: its episode is not the next
             self.resumed_collection = None
 
