@@ -8,8 +8,8 @@ buffer), one gradient step per env step. Before ``--learning-starts`` both act u
 random (SB3's habit; ours through ``collector.init_random_frames``). The timed window is the ``--steps`` env
 steps after learning starts, each with its update:
 
-- ours: :class:`pe_rlhf.baselines.loop.BaselineRun` as the recipe runs it (Collector, ``frames_per_batch``
-  steps then as many updates, tracker, ``metrics.csv`` rows, progress bar), from the end of the iteration
+- ours: :class:`pe_rlhf.runtime.run.Run` over :class:`pe_rlhf.baselines.loop.BaselineLearner` as the recipe runs
+  it (Collector, ``frames_per_batch`` steps then as many updates, tracker, ``metrics.csv`` rows, progress bar), from the end of the iteration
   at frame L to the end of the one at L + steps; no evaluation or checkpoint (the recipe's are periodic
   and would be the same for any learner). Acting runs on 1 thread, updates on ``--threads`` (the recipe's
   own choice, :mod:`pe_rlhf.threads`).
@@ -124,8 +124,11 @@ def recipe_config(args):
 
 
 def run_ours(cfg, seed: int, sim: SimTimer) -> dict:
-    """The recipe's loop (:class:`BaselineRun`), timed from frame L to L + steps."""
-    from pe_rlhf.baselines.loop import BaselineRun
+    """The recipe's loop (:class:`~pe_rlhf.runtime.run.Run` over :class:`BaselineLearner`), timed from frame L
+    to L + steps."""
+    from pe_rlhf.baselines.loop import BaselineLearner
+    from pe_rlhf.runtime.run import Run
+    from pe_rlhf.threads import torch_threads
     from pe_rlhf.training.metrics_logger import MetricsLogger
 
     L, end = int(cfg.collector.learning_starts), int(cfg.collector.total_frames)
@@ -133,16 +136,18 @@ def run_ours(cfg, seed: int, sim: SimTimer) -> dict:
     marks = {}
     with tempfile.TemporaryDirectory() as tmp, MetricsLogger(tmp, csv=True) as logger:
         torch.manual_seed(seed)  # as train_baseline does
-        run = BaselineRun(cfg, logger, checkpoint_dir=None, run_dir=Path(tmp))
-        iteration = run.iteration
+        run = Run(cfg, BaselineLearner(cfg, Path(tmp)), logger, None, total=end, eval_every=0, checkpoint_every=0)
+        step = run.step
 
-        def timed_iteration(batch):
-            iteration(batch)
-            if run.frames in (L, end):
-                marks[run.frames] = (time.perf_counter(), dict(run.seconds), sim.snapshot())
+        def timed_step(batch):
+            step(batch)
+            if run.progress in (L, end):
+                marks[run.progress] = (time.perf_counter(), dict(run.seconds), sim.snapshot())
 
-        run.iteration = timed_iteration
-        run.collect()
+        run.step = timed_step
+        run.finish = lambda out_dir: {}  # no final evaluation: only the window counts
+        with torch_threads(1):
+            run.train(Path(tmp))
     (t0, s0, sim0), (t1, s1, sim1) = marks[L], marks[end]
     return window(t1 - t0, s1["env"] - s0["env"], s1["update"] - s0["update"], sim1, sim0, end - L, end - L)
 

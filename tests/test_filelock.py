@@ -95,7 +95,7 @@ def test_a_checkpoint_write_waits_for_the_lock(tmp_path):
 
     import torch
 
-    from pe_rlhf.training.checkpoint import find_checkpoint, save_checkpoint
+    from pe_rlhf.runtime.checkpoint import find_checkpoint, save_checkpoint
 
     directory = tmp_path / "checkpoints"
     directory.mkdir()

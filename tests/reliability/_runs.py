@@ -48,7 +48,7 @@ def checkpoint_contents(ckpt: Path) -> dict:
     import torch
 
     from pe_rlhf.training.builders import build_replay_buffer
-    from pe_rlhf.training.checkpoint import load_checkpoint
+    from pe_rlhf.runtime.checkpoint import load_checkpoint
     from pe_rlhf.training.config import load_config
 
     cfg = load_config(ckpt.parents[1] / "config.yaml", apply_profile=False)

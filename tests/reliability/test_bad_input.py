@@ -87,7 +87,7 @@ def test_resuming_with_other_network_sizes_is_refused_naming_the_tensor(finished
 
 def _rewrite(ckpt, rel: str, edit) -> None:
     """Edit a checkpoint file and make its marker agree (as a newer writer would have)."""
-    from pe_rlhf.training import checkpoint as ck
+    from pe_rlhf.runtime import checkpoint as ck
 
     path = ckpt / rel
     path.write_text(json.dumps(edit(json.loads(path.read_text()))))
@@ -100,7 +100,7 @@ def _rewrite(ckpt, rel: str, edit) -> None:
 def test_checkpoint_format_and_package_versions(finished_run, tmp_path):
     import shutil
 
-    from pe_rlhf.training.checkpoint import CheckpointError, load_checkpoint
+    from pe_rlhf.runtime.checkpoint import CheckpointError, load_checkpoint
 
     run = tmp_path / "copy"
     shutil.copytree(finished_run, run)

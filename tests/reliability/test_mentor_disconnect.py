@@ -15,7 +15,7 @@ from _runs import train
 from pe_rlhf.envs import make_gym_env
 from pe_rlhf.mentors.human import HumanMentor
 from pe_rlhf.training import builders
-from pe_rlhf.training.checkpoint import load_checkpoint
+from pe_rlhf.runtime.checkpoint import load_checkpoint
 from pe_rlhf.training.config import ConfigError, load_config
 
 pytestmark = pytest.mark.usefixtures("one_thread")

@@ -11,7 +11,7 @@ from _runs import train
 
 from pe_rlhf.objectives import PERLHFLoss
 from pe_rlhf.training import builders, steps
-from pe_rlhf.training.checkpoint import find_checkpoint, load_checkpoint
+from pe_rlhf.runtime.checkpoint import find_checkpoint, load_checkpoint
 from pe_rlhf.training.config import load_config
 
 pytestmark = [pytest.mark.usefixtures("one_thread"), pytest.mark.filterwarnings("ignore::UserWarning")]

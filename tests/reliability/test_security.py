@@ -17,7 +17,7 @@ import torch
 from tensordict import TensorDict
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 
-from pe_rlhf.training.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from pe_rlhf.runtime.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 
 SRC = Path(__file__).resolve().parents[2] / "src" / "pe_rlhf"
 

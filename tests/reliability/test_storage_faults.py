@@ -22,8 +22,8 @@ from tensordict import TensorDict
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 
 from pe_rlhf import durable
-from pe_rlhf.training import checkpoint as ck
-from pe_rlhf.training.checkpoint import CheckpointError, find_checkpoint, list_checkpoints, load_checkpoint
+from pe_rlhf.runtime import checkpoint as ck
+from pe_rlhf.runtime.checkpoint import CheckpointError, find_checkpoint, list_checkpoints, load_checkpoint
 from pe_rlhf.training.journal import BatchJournal
 
 pytestmark = [pytest.mark.usefixtures("one_thread"), pytest.mark.filterwarnings("ignore::UserWarning")]
@@ -32,7 +32,7 @@ WRITER = """
 import sys, torch
 from tensordict import TensorDict
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
-from pe_rlhf.training.checkpoint import save_checkpoint
+from pe_rlhf.runtime.checkpoint import save_checkpoint
 net = torch.nn.Linear(250, 256)
 buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(20000))
 for step in range(1, 10000):

@@ -1,4 +1,4 @@
-"""Tests of ``pe_rlhf.training.checkpoint``: exact resume, pruning, crash/corruption handling, safety.
+"""Tests of ``pe_rlhf.runtime.checkpoint``: exact resume, pruning, crash/corruption handling, safety.
 
 The round trip trains a small ``PERLHFLoss`` (3 Adam optimizers, SoftUpdate targets) from a
 ``TensorDictReplayBuffer``, saves, keeps training, then loads into freshly built objects and checks
@@ -26,8 +26,8 @@ from _compare import assert_same
 from pe_rlhf.modules.networks import make_actor, make_qvalue
 from pe_rlhf.objectives.perlhf import PERLHFLoss, make_transitions
 from pe_rlhf import durable
-from pe_rlhf.training import checkpoint as ck
-from pe_rlhf.training.checkpoint import (CheckpointError, capture_rng, find_checkpoint, list_checkpoints,
+from pe_rlhf.runtime import checkpoint as ck
+from pe_rlhf.runtime.checkpoint import (CheckpointError, capture_rng, find_checkpoint, list_checkpoints,
                                          load_checkpoint, restore_rng, save_checkpoint)
 
 pytestmark = pytest.mark.filterwarnings("ignore:No target network updater")

@@ -63,7 +63,7 @@ def test_a_checkpoint_resumes_whatever_device_saved_it(tmp_path):
     """Checkpoint tensors are read with ``map_location="cpu"`` and copied into the modules where they live,
     so a run saved on a GPU resumes on a CPU-only machine (and the other way): here the resumed run's
     modules receive the saved values through ``load_state_dict``, as they would from CUDA tensors."""
-    from pe_rlhf.training.checkpoint import find_checkpoint
+    from pe_rlhf.runtime.checkpoint import find_checkpoint
 
     train(tmp_path / "run", "collector.total_frames=100")
     ckpt = find_checkpoint(tmp_path / "run" / "checkpoints")

@@ -85,7 +85,7 @@ def test_refresh_on_all_data_feeds_online_transitions_to_the_ensemble(tmp_path):
     import torch
 
     from pe_rlhf.training.builders import build_replay_buffer
-    from pe_rlhf.training.checkpoint import find_checkpoint, load_checkpoint
+    from pe_rlhf.runtime.checkpoint import find_checkpoint, load_checkpoint
     from pe_rlhf.training.config import load_config
 
     sizes = {}

@@ -1,6 +1,6 @@
 """The online imitation learners: GAIL, and HG-DAgger / IWR with the simulated mentor in the loop.
 
-They plug into :class:`~pe_rlhf.baselines.loop.BaselineRun` like the RL learners (``actor``, ``modules``,
+They plug into :class:`~pe_rlhf.baselines.loop.BaselineLearner` like the RL learners (``actor``, ``modules``,
 ``optimizers``, ``replay_buffers``, ``collector_kwargs``, ``learn``), plus the optional hooks the loop
 looks for: ``make_env`` (the collecting env), ``exploration_type``, ``pretrain`` (before the first batch
 of a fresh run) and ``training_totals`` (added to ``final_eval.json``'s training section).

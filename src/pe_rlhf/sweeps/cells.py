@@ -177,7 +177,7 @@ def write_record(out: Path, cell: Cell) -> None:
 def attempt_argv(directory: Path, overrides: list[str]) -> tuple[list[str], bool]:
     """The recipe's argv for the next attempt at an unfinished cell, and whether it resumes: ``--resume DIR``
     when a complete checkpoint exists, else a fresh run in an emptied folder (``cell.json`` kept)."""
-    from pe_rlhf.training.checkpoint import find_checkpoint
+    from pe_rlhf.runtime.checkpoint import find_checkpoint
 
     directory = Path(directory)
     if (directory / "config.yaml").is_file() and find_checkpoint(directory / "checkpoints") is not None:

@@ -21,7 +21,7 @@ from pe_rlhf.sweeps.spec import SweepConfigError, load_sweep
 def _state(out: Path, cell) -> str:
     if is_finished(out, cell):
         return "finished"
-    from pe_rlhf.training.checkpoint import find_checkpoint
+    from pe_rlhf.runtime.checkpoint import find_checkpoint
 
     directory = cell_dir(out, cell)
     return "resume" if find_checkpoint(directory / "checkpoints") is not None else "run"

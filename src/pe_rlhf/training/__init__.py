@@ -1,1 +1,2 @@
-"""Training: recipe helpers shared by the recipes (config, builders, logging, checkpoints)."""
+"""Training: the recipes' config, builders and logging, and the proxy-Q learner (checkpoints and the run loop:
+:mod:`pe_rlhf.runtime`)."""

@@ -42,7 +42,7 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 
 from pe_rlhf import durable
-from pe_rlhf.training.checkpoint import CheckpointError, _short, capture_rng
+from pe_rlhf.runtime.checkpoint import CheckpointError, capture_rng, short_error
 
 __all__ = ["BatchJournal", "JournalEntry"]
 
@@ -123,7 +123,7 @@ class BatchJournal:
         return sorted(found)
 
     def read(self, path: Path) -> JournalEntry:
-        """One entry (batch or pending file); :class:`~pe_rlhf.training.checkpoint.CheckpointError`
+        """One entry (batch or pending file); :class:`~pe_rlhf.runtime.checkpoint.CheckpointError`
         naming the file if it is corrupt, truncated, unsafe (refused by ``weights_only=True``) or malformed."""
         m = ENTRY_NAME.match(path.name) or PENDING_NAME.match(path.name)
         data = path.read_bytes()
@@ -140,7 +140,7 @@ class BatchJournal:
             if named != ([end] if m.re is ENTRY_NAME else [start, end]) or end - start != batch.numel():
                 raise ValueError(f"frames {start}-{end} do not match the name or the batch's {batch.numel()} steps")
         except Exception as e:  # noqa: BLE001 - unpickling/shape errors of every kind: name the file, no stack
-            raise CheckpointError(f"unreadable journal file {path}: {_short(e)}") from None
+            raise CheckpointError(f"unreadable journal file {path}: {short_error(e)}") from None
         return JournalEntry(path, start, end, batch, p["rng"], state)
 
     def entries_after(self, frame: int) -> list[JournalEntry]:

@@ -78,7 +78,7 @@ def load_actor(run_dir: str | Path):
     """The actor of the run in ``run_dir``: its final ``actor.pt`` if the run finished, else the actor in
     its newest checkpoint. Reads ``config.yaml`` for the network sizes; loads with ``weights_only=True``.
     """
-    from pe_rlhf.training.checkpoint import load_checkpoint
+    from pe_rlhf.runtime.checkpoint import load_checkpoint
     from pe_rlhf.training.config import load_config
 
     run_dir = Path(run_dir)

@@ -1,6 +1,7 @@
-"""The PE-RLHF (and HACO) training loop: warm-up, ensemble fit, online collection with takeovers, updates.
+"""The PE-RLHF (HACO, HAIM-DRL) learner: warm-up, ensemble fit, online collection with takeovers, updates.
 
-Phases, top to bottom in :func:`train`:
+:class:`ProxyQLearner` plugs into :class:`~pe_rlhf.runtime.run.Run`, the loop every method shares (cadence,
+checkpoints, ``--resume``, finish); its batches, and :meth:`ProxyQLearner.learn` on each, in phases:
 
 1. warm-up: the mentor (or, with ``collector.warmup_policy``, the trained actor of an earlier run: the
    expert-policy warm-up) drives ``collector.warmup_steps`` steps (the transform forces it); the
@@ -12,7 +13,7 @@ Phases, top to bottom in :func:`train`:
    ``collector.learning_starts`` frames are in (with ``optim.async_updates``, at the same ratio in a
    learner thread beside acting: :mod:`pe_rlhf.training.background_updates`; ``collector.realtime_hz``
    holds the env to a steady step rate for a person: :class:`~pe_rlhf.transforms.RealtimePacing`);
-4. every ``eval.every_frames``: evaluation on the test split without the mentor; every
+4. (the run's) every ``eval.every_frames``: evaluation on the test split without the mentor; every
    ``checkpoint.every_frames``: a checkpoint (``--resume DIR`` continues from it).
 
 What a run survives: each collected batch is journaled (:mod:`pe_rlhf.training.journal`) before
@@ -42,21 +43,19 @@ buffers, counters) resumes exactly.
 
 from __future__ import annotations
 
-import contextlib
 import time
-import warnings
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import torch
-from tqdm import tqdm
 
 from pe_rlhf.evaluation import TorchRLPolicyAdapter, evaluate
 from pe_rlhf.modules import EnsembleSchedule
 from pe_rlhf.objectives import fit_q_ensemble
+from pe_rlhf.runtime.checkpoint import capture_rng, restore_rng
+from pe_rlhf.runtime.run import Learner, Run
 from pe_rlhf.threads import torch_threads
 from pe_rlhf.training import builders
-from pe_rlhf.training.checkpoint import capture_rng, restore_rng
 from pe_rlhf.training.collection_state import capture_collection, restore_collection
 from pe_rlhf.training.config import algorithm_name, method_name
 from pe_rlhf.training.steps import batch_metrics, ensemble_transitions, relabel_warmup
@@ -64,10 +63,6 @@ from pe_rlhf.transforms import InterventionTransform, RealtimePacing
 
 if TYPE_CHECKING:
     from pe_rlhf.training.journal import JournalEntry
-
-EVAL_KEYS = ("episodic_return", "success_rate", "safety_violation", "travel_distance", "travel_velocity",
-             "overtake_count")
-
 
 class Counters:
     """Cumulative training bookkeeping (saved in checkpoints)."""
@@ -94,19 +89,6 @@ class Counters:
 
     def load_state_dict(self, state: dict) -> None:
         vars(self).update(state)
-
-
-def next_multiple(frames: float, every: int) -> float:
-    """The next frame count at which a periodic job runs (never, when ``every`` is 0)."""
-    return float("inf") if every <= 0 else (int(frames) // every + 1) * every
-
-
-def evaluate_actor(actor, cfg, env_config, episodes: int) -> dict:
-    """Deterministic evaluation of the actor on the first ``episodes`` seeds of ``eval.split``."""
-    from pe_rlhf.envs import scene_seeds
-
-    seeds = scene_seeds(str(cfg.eval.split))[:episodes]
-    return evaluate(TorchRLPolicyAdapter(actor), seeds, env_config, progress=False).to_dict()
 
 
 VIDEO_NAME = "test_episode.gif"
@@ -159,11 +141,10 @@ def pacing_log(pacing: RealtimePacing | None, frames: int) -> dict[str, float]:
             "time/frame_jitter_ms_max": stats["jitter_ms_max"]}
 
 
-def iteration_log(counters: Counters, m: dict, losses: dict, started: float) -> dict[str, float]:
+def iteration_log(counters: Counters, m: dict, losses: dict) -> dict[str, float]:
     online = max(counters.online_frames, 1.0)
     log = {
         "env_steps": counters.frames,
-        "wall_time": time.time() - started,
         "train/safety_violations_total": counters.safety_violations,
         "train/takeover_rate": m["takeover_steps"] / max(m["steps"], 1.0),
         "train/takeover_count": counters.takeover_starts,
@@ -193,51 +174,27 @@ def train(cfg, out_dir: Path, logger, checkpoint_dir: Path | None = None, resume
     torch.manual_seed(int(cfg.seed))
     update_threads = torch.get_num_threads()
     with torch_threads(1):
-        return _train(cfg, out_dir, logger, checkpoint_dir, resume, update_threads)
+        learner = ProxyQLearner(cfg, logger, checkpoint_dir, update_threads)
+        run = Run(cfg, learner, logger, checkpoint_dir, total=cfg.collector.total_frames,
+                  eval_every=cfg.eval.every_frames, checkpoint_every=cfg.checkpoint.every_frames)
+        return run.train(out_dir, resume)
 
 
-def _train(cfg, out_dir, logger, checkpoint_dir, resume: bool, update_threads: int) -> dict:
-    run = _Run(cfg, logger, checkpoint_dir, update_threads)
-    journaled, pending = run.resume() if resume else ([], None)
-    if resume and run.done:  # otherwise the re-evaluation below looks like training that did nothing
-        total = int(cfg.collector.total_frames)
-        print(f"{out_dir}: the run was already complete ({int(run.counters.frames)} of {total} frames); "
-              "evaluating it again (final_eval.json, actor.pt and the plots are rewritten)", flush=True)
-    try:
-        run.start()
-        for entry in journaled:  # the killed run's batches since its checkpoint, as it processed them
-            if run.done:
-                break
-            restore_rng(entry.rng)
-            run.process(entry.batch, journaled=True)
-            run.restore_actors(entry.state)
-        if pending is not None and not run.done:  # its batch up to the last finished episode: a short batch
-            restore_rng(pending.rng)
-            run.restore_actors(pending.state)  # first: journaled with it, and a checkpoint in process() saves it
-            run.process(pending.batch)
-        run.collect()
-    except FloatingPointError as e:  # a non-finite loss, gradient or parameter: keep the data, then stop
-        raise run.stop_on_error(e) from e
-    finally:
-        run.shutdown_collector()
-    return run.finish(out_dir)
-
-
-class _Run:
-    """One training run: its objects, and the work done on each batch, collected or replayed from the
-    journal on ``--resume`` (:mod:`pe_rlhf.training.journal`)."""
+class ProxyQLearner(Learner):
+    """PE-RLHF, HACO and HAIM-DRL as a :class:`~pe_rlhf.runtime.run.Learner`: its objects, and the work done
+    on each batch, collected or replayed from the journal on ``--resume`` (:mod:`pe_rlhf.training.journal`)."""
 
     def __init__(self, cfg, logger, checkpoint_dir: Path | None, update_threads: int):
         from pe_rlhf.training.config import driving_config
         from pe_rlhf.training.episode_journal import PendingEpisodesJournal
         from pe_rlhf.training.journal import BatchJournal
 
-        self.cfg, self.logger, self.checkpoint_dir = cfg, logger, checkpoint_dir
+        self.cfg, self.logger, self.name = cfg, logger, method_name(cfg)  # the logger: the test episode's video
         self.env_config = driving_config(cfg)
         self.ensemble = builders.build_q_ensemble(cfg)
         self.env, self.mentor = builders.build_local_env(cfg, self.env_config, self.ensemble)  # None: workers own them
-        self.actor = builders.build_actor(cfg)
-        self.loss, soft_update = builders.build_loss(cfg, self.actor)
+        self.learner_actor = builders.build_actor(cfg)
+        self.loss, soft_update = builders.build_loss(cfg, self.learner_actor)
         self.device = builders.learner_device(cfg)  # None: the CPU, acting with the learner's actor
         if self.device is not None:
             self.loss.to(self.device)  # actor, critics, targets (the actor's parameters are the loss's)
@@ -263,47 +220,49 @@ class _Run:
         if self.journal is not None and self.env is not None:
             self.pending = PendingEpisodesJournal(self.journal, int(cfg.collector.frames_per_batch), self._actor_state)
             self.env.append_transform(self.pending)  # last: it copies each step as the collector stores it
-        self.updater = builders.build_updater(cfg, self.loss, self.optimizers, soft_update, self.replay, self.actor,
-                                              update_threads, self.device)
-        self.collector, self.losses, self.saved_step, self.disconnects = None, {}, -1, 0
+        self.updater = builders.build_updater(cfg, self.loss, self.optimizers, soft_update, self.replay,
+                                              self.learner_actor, update_threads, self.device)
+        self.collector, self.losses, self.disconnects = None, {}, 0
+        self.journaled: list[JournalEntry] = []  # on --resume: the killed run's batches since the checkpoint,
+        self.journaled_pending: JournalEntry | None = None  # and its last batch up to the last finished episode
         self.resumed_collection: tuple[dict, dict | None] | None = None  # (collection, mentor state) to continue
+
+    @property
+    def progress(self) -> int:
+        return int(self.counters.frames)
 
     @property
     def done(self) -> bool:
         return self.counters.frames >= int(self.cfg.collector.total_frames)
 
     @property
-    def cpu_actor(self):
+    def actor(self):
         """The actor to evaluate on the CPU: the learner's own, or with ``optim.device`` its synced CPU copy."""
-        return self.actor if self.device is None else self.updater.acting_actor
+        return self.learner_actor if self.device is None else self.updater.acting_actor
 
-    def run_info(self) -> dict:
-        """What a checkpoint must match to be resumed (checked by :func:`check_resumable`)."""
-        from pe_rlhf import __version__
+    def checkpoint_objects(self, checkpoint: Path | None = None) -> dict:
+        return self.objects
 
-        return {"pe_rlhf_version": __version__, "env_config": self.env_config.to_dict()}
+    def state_dict(self) -> dict:
+        c = self.counters
+        c.updates = self.updates0 + self.updater.updates_done
+        return {"counters": c.state_dict(), "schedule": self.schedule.state_dict(), **self._actor_state(),
+                "collection": capture_collection(self.collector, self.transform)}
 
-    def resume(self) -> tuple[list[JournalEntry], JournalEntry | None]:
-        """Load the newest checkpoint; return the journal entries written after it, and the pending
-        file that continues them (None if there is none)."""
-        from pe_rlhf.training.checkpoint import find_checkpoint, load_checkpoint
-
-        state = load_checkpoint(self.checkpoint_dir, **self.objects)
-        check_resumable(state.get("run"), self.run_info(), find_checkpoint(self.checkpoint_dir))
-        self.saved_step = int(state["step"])
-        self.logger.truncate_after(self.saved_step + 1)  # rows after the checkpoint are logged again
+    def load_state_dict(self, state: dict) -> None:
+        """The checkpoint's counters, schedule and actors; the journal entries written after it, and the
+        pending file that continues them, to replay."""
         self.counters.load_state_dict(state["counters"])
         self.schedule.load_state_dict(state["schedule"])
         self.restore_actors(state)
         if state.get("collection") is not None:  # the episode in progress at the checkpoint (single backend)
             self.resumed_collection = (state["collection"], state["mentor"])
         if self.journal is None:
-            return [], None
-        entries = self.journal.entries_after(self.saved_step)
-        pending = self.journal.pending_at(entries[-1].end if entries else self.saved_step)
-        if entries or pending is not None:  # collection went on after the checkpoint: its episode is not the next
+            return
+        self.journaled = self.journal.entries_after(int(state["step"]))
+        self.journaled_pending = self.journal.pending_at(self.journaled[-1].end if self.journaled else state["step"])
+        if self.journaled or self.journaled_pending is not None:  # collection went on: its episode is not the next
             self.resumed_collection = None
-        return entries, pending
 
     def restore_actors(self, state: dict) -> None:
         """The transform's step count and the mentor's state (multi-worker backends restart theirs)."""
@@ -317,16 +276,31 @@ class _Run:
                 "mentor": self.mentor.state_dict() if self.mentor is not None else None}
 
     def start(self) -> None:
-        cfg, c = self.cfg, self.counters
-        self.updates0, self.update_seconds0 = c.updates, c.update_seconds
-        self.started = time.time()
-        self.next_eval = next_multiple(c.frames, int(cfg.eval.every_frames))
-        self.next_ckpt = next_multiple(c.frames, int(cfg.checkpoint.every_frames))
-        self.bar = tqdm(total=int(cfg.collector.total_frames), initial=int(c.frames), desc=method_name(cfg),
-                        unit="step")
+        self.updates0, self.update_seconds0 = self.counters.updates, self.counters.update_seconds
         self.updater.start()  # optim.async_updates: the learner thread (pe_rlhf.training.background_updates)
 
-    def collect(self) -> None:
+    def batches(self):
+        """The killed run's journaled batches since the checkpoint (as it processed them), its last batch up to
+        the last finished episode (a short batch), then collection; ``(batch, journaled)`` pairs."""
+        try:
+            for entry in self.journaled:
+                if self.done:
+                    return
+                restore_rng(entry.rng)
+                yield entry.batch, True
+                self.restore_actors(entry.state)
+            pending = self.journaled_pending
+            if pending is not None and not self.done:
+                restore_rng(pending.rng)
+                self.restore_actors(pending.state)  # first: journaled with it, and a checkpoint after it saves it
+                yield pending.batch, False
+            yield from self.collect()
+        finally:
+            if self.collector is not None:
+                builders.shutdown_collector(self.collector)
+                self.collector = None
+
+    def collect(self):
         remaining = int(self.cfg.collector.total_frames) - int(self.counters.frames)
         if remaining <= 0:
             return
@@ -344,11 +318,12 @@ class _Run:
             self.counters.env_seconds += time.time() - t_env
             if self.done:
                 break
-            self.process(batch)
+            yield batch, False
             t_env = time.time()
 
-    def process(self, batch, journaled: bool = False) -> None:
-        """One iteration on a batch: journal, buffers, ensemble fit, updates, log, eval, checkpoint."""
+    def learn(self, item) -> dict[str, float]:
+        """One batch: journal, buffers, ensemble fit, updates; returns its row."""
+        batch, journaled = item
         cfg, c = self.cfg, self.counters
         if self.journal is not None and not journaled:  # on disk before anything else happens to it
             self.journal.write(batch, int(c.frames), self._actor_state())
@@ -372,7 +347,7 @@ class _Run:
                 builders.sync_policy(self.collector)
         c.updates = self.updates0 + self.updater.updates_done
         c.update_seconds = self.update_seconds0 + self.updater.update_seconds
-        metrics = iteration_log(c, m, self.losses, self.started)
+        metrics = iteration_log(c, m, self.losses)
         metrics["time/update_threads"] = float(self.updater.threads)
         metrics["train/update_backlog"] = float(backlog)
         metrics.update(pacing_log(self.pacing, int(m["steps"])))
@@ -381,21 +356,12 @@ class _Run:
         fatigue = getattr(self.mentor, "fatigue", None)  # a simulated mentor's noise/error multiplier
         if isinstance(fatigue, (int, float)):
             metrics["train/mentor_fatigue"] = float(fatigue)
-        if c.frames >= self.next_eval:
-            self.next_eval = next_multiple(c.frames, int(cfg.eval.every_frames))
-            with self.updater.paused():
-                summary = evaluate_actor(self.cpu_actor, cfg, self.env_config, int(cfg.eval.episodes))
-            for k in EVAL_KEYS:
-                metrics[f"eval/{k}_mean"], metrics[f"eval/{k}_std"] = summary[k]["mean"], summary[k]["std"]
-        self.logger.log(int(c.frames), metrics)
-        self.bar.update(int(m["steps"]))
-        self.bar.set_postfix(takeover=f"{metrics['train/takeover_rate']:.2f}", violations=int(c.safety_violations),
-                             succ=f"{metrics['train/success_rate_total']:.2f}")
-        if self.checkpoint_dir is not None and (c.frames >= self.next_ckpt or disconnects > self.disconnects):
-            self.next_ckpt = next_multiple(c.frames, int(cfg.checkpoint.every_frames))
-            with self.updater.paused():  # networks, optimisers and counters from one moment
-                self.save()
-        self.disconnects = disconnects
+        self.checkpoint_requested, self.disconnects = disconnects > self.disconnects, disconnects
+        return metrics
+
+    def postfix(self, row: dict[str, float]) -> dict:
+        return {"takeover": f"{row['train/takeover_rate']:.2f}", "violations": int(self.counters.safety_violations),
+                "succ": f"{row['train/success_rate_total']:.2f}"}
 
     def _fit_ensemble(self) -> None:
         cfg = self.cfg
@@ -410,69 +376,24 @@ class _Run:
         if self.collector is not None:
             builders.push_ensemble_weights(self.collector, self.ensemble)
 
-    def save(self) -> Path:
-        """A checkpoint of everything at the current frame count (call with the learner paused or stopped);
-        journal files it makes redundant are deleted."""
-        from pe_rlhf.training.checkpoint import save_checkpoint
+    def paused(self):
+        return self.updater.paused()
 
-        c = self.counters
-        c.updates = self.updates0 + self.updater.updates_done
-        state = {"counters": c.state_dict(), "schedule": self.schedule.state_dict(), **self._actor_state(),
-                 "collection": capture_collection(self.collector, self.transform), "run": self.run_info()}
-        path = save_checkpoint(self.checkpoint_dir, step=int(c.frames), keep=int(self.cfg.checkpoint.keep),
-                               **self.objects, state=state)
-        self.saved_step = int(c.frames)
-        if self.journal is not None:
-            self.journal.prune(self.saved_step)
-        return path
+    def saved(self, step: int) -> None:
+        if self.journal is not None:  # its files up to the checkpoint are redundant now
+            self.journal.prune(step)
 
-    def stop_on_error(self, error: FloatingPointError) -> FloatingPointError:
-        """Stop the learner, checkpoint what was collected (the updates stopped before the bad step),
-        and return the error to raise, saying where the checkpoint is."""
-        with contextlib.suppress(BaseException):  # the learner thread died of ``error`` already
-            self.updater.stop(finish=False)
-        self.bar.close()
-        if self.checkpoint_dir is None:
-            return FloatingPointError(f"{error} (no checkpoint directory: nothing saved)")
-        path = self.save()
-        return FloatingPointError(f"{error}. Saved checkpoint {path} (frame {int(self.counters.frames)}, every "
-                                  "collected transition included); fix the cause (e.g. a lower optim.lr) and --resume")
+    def stop(self, finish: bool = True) -> None:
+        """Join the learner thread: after the updates still owed (``finish``: the run keeps its update-to-data
+        ratio) or after the one in flight."""
+        self.updater.stop(finish=finish)
+        if finish:
+            self.counters.updates = self.updates0 + self.updater.updates_done
+            self.counters.update_seconds = self.update_seconds0 + self.updater.update_seconds
 
-    def shutdown_collector(self) -> None:
-        if self.collector is not None:
-            builders.shutdown_collector(self.collector)
-            self.collector = None
-
-    def finish(self, out_dir: Path) -> dict:
-        """Owed updates, a last checkpoint, the final evaluation, ``actor.pt`` (and the GIF)."""
-        c = self.counters
-        self.updater.stop()  # async: the updates still owed run first, so the run keeps its update-to-data ratio
-        c.updates = self.updates0 + self.updater.updates_done
-        c.update_seconds = self.update_seconds0 + self.updater.update_seconds
-        self.bar.close()
-        if self.checkpoint_dir is not None and c.frames > self.saved_step:
-            self.save()
-        final = evaluate_actor(self.cpu_actor, self.cfg, self.env_config, int(self.cfg.eval.episodes))
-        final["algorithm"] = algorithm_name(self.cfg)
-        final["training"] = c.state_dict()
-        torch.save({k: v.detach().cpu() for k, v in self.actor.state_dict().items()}, out_dir / "actor.pt")
+    def summary(self, out_dir: Path) -> dict:
+        summary = {"algorithm": algorithm_name(self.cfg), "training": self.counters.state_dict()}
         if self.cfg.eval.video:
-            final["video"] = record_test_video(self.cpu_actor, self.cfg, self.env_config, out_dir / VIDEO_NAME,
-                                               self.logger, int(c.frames))
-        return final
-
-
-def check_resumable(saved: dict | None, current: dict, checkpoint) -> None:
-    """Refuse a checkpoint trained under another env config (ValueError naming each field); warn when
-    another pe_rlhf version wrote it (the checkpoint format, checked on loading, is what must agree).
-    Checkpoints from before this record (``saved`` None) are taken as they are."""
-    if saved is None:
-        return
-    if saved.get("pe_rlhf_version") != current["pe_rlhf_version"]:
-        warnings.warn(f"{checkpoint} was written by pe_rlhf {saved.get('pe_rlhf_version')}, this is "
-                      f"{current['pe_rlhf_version']} (same checkpoint format: resuming)", stacklevel=3)
-    env, now = saved.get("env_config") or {}, current["env_config"]
-    bad = [f"env.{k}: checkpoint {env.get(k)!r}, now {v!r}" for k, v in now.items() if k in env and env[k] != v]
-    if bad:
-        raise ValueError(f"cannot resume from {checkpoint}: it was trained under another env config ("
-                         + "; ".join(bad) + "); resume with the run's own config.yaml values")
+            summary["video"] = record_test_video(self.actor, self.cfg, self.env_config, out_dir / VIDEO_NAME,
+                                                 self.logger, int(self.counters.frames))
+        return summary

@@ -65,7 +65,7 @@ def _critic_stacks(tensors: dict[str, Any], where: Path) -> list[dict[str, torch
 def critics_of_run(run_dir: str | Path, max_members: int | None = None) -> QEnsemble:
     """The critics of the newest checkpoint of a run folder (or of a checkpoint folder) as a frozen
     ``QEnsemble``: online copies first, then their targets (SAC's twin: 4 members)."""
-    from pe_rlhf.training.checkpoint import TENSORS, find_checkpoint
+    from pe_rlhf.runtime.checkpoint import TENSORS, find_checkpoint
 
     run_dir = Path(run_dir)
     ckpt = find_checkpoint(run_dir / "checkpoints") or find_checkpoint(run_dir)

@@ -211,7 +211,8 @@ def _pickle_is_plain(data: bytes) -> bool:
     return not any(op.name in _CODE_OPCODES for op, _, _ in ops)
 
 
-def _short(e: BaseException, limit: int = 300) -> str:
+def short_error(e: BaseException, limit: int = 300) -> str:
+    """``e`` in one line of at most ``limit`` characters (torch's weights_only refusal: its reason only)."""
     text = " ".join(str(e).split())
     # torch's weights_only refusal is a page of advice to load unsafely; keep only its reason
     m = re.search(r"WeightsUnpickler error: (.*?)(?: was not an allowed global| Check the recommended| We intend|$)",
@@ -257,7 +258,7 @@ def _check_buffer_files(buffer_dir: Path) -> None:
                 torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
             except Exception as e:  # noqa: BLE001
                 raise CheckpointError(f"refusing {path}: not loadable with weights_only=True "
-                                      f"({_short(e, 160)})") from None
+                                      f"({short_error(e, 160)})") from None
         elif not _pickle_is_plain(data):
             raise CheckpointError(f"refusing {path}: a pickle that imports or calls code (or is not a "
                                   "well-formed pickle) cannot be loaded safely")
@@ -458,7 +459,7 @@ def _read_marker(ckpt: Path) -> dict[str, Any]:
         if not isinstance(marker["files"], dict) or TENSORS not in marker["files"]:
             raise ValueError(f"no entry for {TENSORS}")
     except (ValueError, KeyError, TypeError) as e:  # JSONDecodeError/UnicodeDecodeError are ValueErrors
-        raise CheckpointError(f"corrupt checkpoint marker {path}: {_short(e)}") from None
+        raise CheckpointError(f"corrupt checkpoint marker {path}: {short_error(e)}") from None
     if marker["format_version"] != FORMAT_VERSION:
         raise CheckpointError(f"{path}: checkpoint format_version {marker['format_version']!r}; this "
                               f"pe_rlhf reads version {FORMAT_VERSION}")
@@ -492,7 +493,7 @@ def _torch_load(path: Path) -> Any:
         return torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:  # noqa: BLE001 - unpickling errors of every kind: name the file, no stack
         raise CheckpointError(f"unreadable checkpoint file {path} (refused by torch.load(weights_only=True)): "
-                              f"{_short(e)}") from None
+                              f"{short_error(e)}") from None
 
 
 def _check_names(kind: str, requested: Mapping[str, Any], saved: Mapping[str, Any] | list, strict: bool,
@@ -589,7 +590,7 @@ def load_checkpoint(
         if not isinstance(state, dict):
             raise ValueError("not a JSON object")
     except ValueError as e:
-        raise CheckpointError(f"corrupt checkpoint state {ckpt / STATE}: {_short(e)}") from None
+        raise CheckpointError(f"corrupt checkpoint state {ckpt / STATE}: {short_error(e)}") from None
 
     _check_names("modules", modules, payload["modules"], strict, ckpt)
     _check_names("optimizers", optimizers, payload["optimizers"], strict, ckpt)
@@ -609,12 +610,12 @@ def load_checkpoint(
         try:
             module.load_state_dict(payload["modules"][name], strict=True)
         except RuntimeError as e:
-            raise ValueError(f"module {name!r} could not load the checkpoint: {_short(e)}") from None
+            raise ValueError(f"module {name!r} could not load the checkpoint: {short_error(e)}") from None
     for name, optimizer in optimizers.items():
         try:
             optimizer.load_state_dict(payload["optimizers"][name])
         except (ValueError, KeyError, RuntimeError) as e:
-            raise ValueError(f"optimizer {name!r} could not load the checkpoint: {_short(e)}") from None
+            raise ValueError(f"optimizer {name!r} could not load the checkpoint: {short_error(e)}") from None
     for name, buffer in replay_buffers.items():
         if marker["buffers"][name].get("empty"):
             buffer.empty()
@@ -625,7 +626,7 @@ def load_checkpoint(
                 warnings.simplefilter("ignore", FutureWarning)  # tensordict's allow_pickle notice
                 buffer.loads(bdir)
         except Exception as e:  # noqa: BLE001
-            raise CheckpointError(f"replay buffer {name!r} could not be loaded from {bdir}: {_short(e)}") from None
+            raise CheckpointError(f"replay buffer {name!r} could not be loaded from {bdir}: {short_error(e)}") from None
         expected = marker["buffers"][name].get("length")
         if expected is not None and len(buffer) != expected:
             raise CheckpointError(f"replay buffer {name!r} from {bdir} holds {len(buffer)} items, "

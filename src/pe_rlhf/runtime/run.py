@@ -1,0 +1,250 @@
+"""One training run of any method: a :class:`Learner`'s batches in one loop, with the cadence, ``--resume`` and
+finish that every recipe shares.
+
+:meth:`Run.train`, top to bottom:
+
+1. with ``resume``, the newest checkpoint (:mod:`pe_rlhf.runtime.checkpoint`) is loaded into the learner's
+   modules, optimisers and replay buffers, its env config checked (:func:`check_resumable`) and the rows
+   ``metrics.csv`` holds after it dropped (they are logged again);
+2. a fresh run's ``pretrain`` row at step 0, when the learner has one (HG-DAgger, IWR: BC on demonstrations);
+3. each batch the learner yields (frames collected online, or a round of offline updates) goes to its
+   ``learn``, which returns the row; every ``eval_every`` units of progress a deterministic evaluation on
+   ``eval.split`` adds the ``eval/*`` columns; the row is logged every ``logger.log_every`` batches (and
+   with an evaluation, and the last); every ``checkpoint_every`` (or when the learner asks) a checkpoint;
+4. a non-finite loss, gradient or parameter (``FloatingPointError``): a checkpoint of what there is, and the
+   error, saying where it is;
+5. the finish: a last checkpoint, the final evaluation with the learner's ``summary``, ``actor.pt``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import time
+import warnings
+from pathlib import Path
+
+import torch
+from tqdm import tqdm
+
+from pe_rlhf.evaluation import TorchRLPolicyAdapter, evaluate
+from pe_rlhf.runtime.checkpoint import find_checkpoint, load_checkpoint, save_checkpoint
+from pe_rlhf.threads import torch_threads
+
+ACTOR_FILE = "actor.pt"
+EVAL_KEYS = ("episodic_return", "success_rate", "safety_violation", "travel_distance", "travel_velocity",
+             "overtake_count")
+
+
+class Learner:
+    """What a method plugs into :class:`Run`; the hooks defined here are optional.
+
+    A learner has ``name`` (the progress bar's label), ``env_config`` (its :class:`~pe_rlhf.envs.DrivingConfig`),
+    ``actor`` (evaluated deterministically, saved as ``actor.pt``), ``progress`` (frames, or updates offline: the
+    step of rows and checkpoints), and ``batches()`` (the work, one item per ``learn``; it stops when the run is
+    complete), ``learn(batch)`` (returns the batch's row of metrics), ``checkpoint_objects(checkpoint=None)``
+    (``modules``, ``optimizers`` and ``replay_buffers`` to save, or to load ``checkpoint`` into),
+    ``load_state_dict(state)`` (``state["step"]`` is its progress) and ``summary(out_dir)`` (what
+    ``final_eval.json`` adds to the final evaluation: ``algorithm``, ``training`` totals, ...). With ``timers``
+    (the names of waiting for a batch and of learning) the run times both, and its evaluations, as
+    ``time/<name>_seconds`` across the run's sessions.
+    """
+
+    unit, timers = "frame", ()
+    checkpoint_requested = False  # set by ``learn``: a checkpoint after this batch, whatever the cadence
+
+    def state_dict(self) -> dict:
+        return {}
+
+    def pretrain(self) -> dict[str, float] | None:
+        """A fresh run's row at step 0, or None."""
+        return None
+
+    def start(self) -> None:
+        """Before the first batch of this session."""
+
+    def paused(self):
+        """Around periodic evaluations and checkpoints: no update runs inside (a learner thread's)."""
+        return contextlib.nullcontext()
+
+    def stop(self, finish: bool = True) -> None:
+        """Before the finish (``finish``: run the updates still owed) or after an error."""
+
+    def saved(self, step: int) -> None:
+        """After each checkpoint, at ``step``."""
+
+    def postfix(self, row: dict[str, float]) -> dict:
+        """The progress bar's postfix."""
+        return {}
+
+
+class Run:
+    """Drives a :class:`Learner` to ``total`` units of progress (module docstring), with ``cfg.eval``,
+    ``cfg.checkpoint.keep`` and ``cfg.logger.log_every``; ``logger`` has ``log(step, metrics)`` and
+    ``truncate_after``. No ``checkpoint_dir``: nothing is saved."""
+
+    def __init__(self, cfg, learner: Learner, logger, checkpoint_dir: Path | None, *, total: int, eval_every: int,
+                 checkpoint_every: int):
+        self.cfg, self.learner, self.logger, self.checkpoint_dir = cfg, learner, logger, checkpoint_dir
+        self.total, self.eval_every, self.checkpoint_every = int(total), int(eval_every), int(checkpoint_every)
+        self.iterations, self.saved_step, self.started = 0, -1, time.time()
+        self.seconds = dict.fromkeys((*learner.timers, "eval", "earlier_sessions"), 0.0) if learner.timers else {}
+
+    @property
+    def progress(self) -> int:
+        return int(self.learner.progress)
+
+    @property
+    def done(self) -> bool:
+        return self.progress >= self.total
+
+    def wall_time(self) -> float:
+        return self.seconds.get("earlier_sessions", 0.0) + time.time() - self.started
+
+    def timed(self, timer: int | str, since: float) -> None:
+        """Add the seconds since ``since`` to a timer (an index into the learner's ``timers``, or ``"eval"``)."""
+        if self.seconds:
+            self.seconds[self.learner.timers[timer] if isinstance(timer, int) else timer] += time.time() - since
+
+    def run_info(self) -> dict:
+        """What a checkpoint must match to be resumed (checked by :func:`check_resumable`)."""
+        from pe_rlhf import __version__
+
+        return {"pe_rlhf_version": __version__, "env_config": self.learner.env_config.to_dict()}
+
+    def train(self, out_dir: Path, resume: bool = False) -> dict:
+        """The whole run (module docstring); returns the final evaluation summary dict."""
+        if resume:
+            self.resume(out_dir)
+        if self.progress == 0:
+            t = time.time()
+            row = self.learner.pretrain()
+            if row is not None:
+                self.timed(1, t)
+                self.logger.log(0, {**row, "wall_time": self.wall_time()})
+        self.next_eval = next_multiple(self.progress, self.eval_every)
+        self.next_ckpt = next_multiple(self.progress, self.checkpoint_every)
+        self.bar = tqdm(total=self.total, initial=self.progress, desc=self.learner.name, unit=self.learner.unit)
+        self.learner.start()
+        batches = self.learner.batches()
+        try:
+            t = time.time()
+            for batch in batches:
+                self.timed(0, t)
+                self.step(batch)
+                t = time.time()
+        except FloatingPointError as e:  # a non-finite loss, gradient or parameter: keep what there is, then stop
+            raise self.stop_on_error(e) from e
+        finally:
+            batches.close()  # a collector inside shuts down
+            self.bar.close()
+        return self.finish(Path(out_dir))
+
+    def step(self, batch) -> None:
+        """One batch: learn, evaluate and checkpoint when due, log."""
+        before, t = self.progress, time.time()
+        row = self.learner.learn(batch)
+        self.timed(1, t)
+        self.iterations += 1
+        evaluated = self.progress >= self.next_eval
+        if evaluated:
+            self.next_eval = next_multiple(self.progress, self.eval_every)
+            with self.learner.paused():
+                summary = self.evaluate()
+            row.update({f"eval/{k}_{s}": summary[k][s] for k in EVAL_KEYS for s in ("mean", "std")})
+        row["wall_time"] = self.wall_time()
+        row.update({f"time/{k}_seconds": v for k, v in self.seconds.items() if k != "earlier_sessions"})
+        if self.done or evaluated or self.iterations % int(self.cfg.logger.log_every) == 0:
+            self.logger.log(self.progress, row)
+        self.bar.update(self.progress - before)
+        self.bar.set_postfix(self.learner.postfix(row), refresh=False)
+        if self.checkpoint_dir is not None and (self.progress >= self.next_ckpt or self.learner.checkpoint_requested):
+            self.next_ckpt = next_multiple(self.progress, self.checkpoint_every)
+            with self.learner.paused():  # networks, optimisers and counters from one moment
+                self.save()
+
+    def evaluate(self) -> dict:
+        t = time.time()
+        with torch_threads(1):
+            summary = evaluate_actor(self.learner.actor, self.cfg, self.learner.env_config,
+                                     int(self.cfg.eval.episodes))
+        self.timed("eval", t)
+        return summary
+
+    def save(self) -> Path:
+        """A checkpoint of the learner and the run at the current progress (the learner paused or stopped)."""
+        state = {**self.learner.state_dict(), "iterations": self.iterations, "run": self.run_info()}
+        if self.seconds:
+            state["seconds"] = dict(self.seconds, earlier_sessions=self.wall_time())
+        path = save_checkpoint(self.checkpoint_dir, step=self.progress, keep=int(self.cfg.checkpoint.keep),
+                               **self.learner.checkpoint_objects(), state=state)
+        self.saved_step = self.progress
+        self.learner.saved(self.saved_step)
+        return path
+
+    def resume(self, out_dir: Path) -> None:
+        """Load the newest checkpoint into the learner and the run."""
+        checkpoint = find_checkpoint(self.checkpoint_dir)
+        if checkpoint is None:
+            raise FileNotFoundError(f"no complete checkpoint under {self.checkpoint_dir}")
+        state = load_checkpoint(checkpoint, **self.learner.checkpoint_objects(checkpoint))
+        check_resumable(state.get("run"), self.run_info(), checkpoint)
+        self.saved_step, self.iterations = int(state["step"]), int(state.get("iterations", 0))
+        if self.seconds and "seconds" in state:
+            self.seconds = {k: float(v) for k, v in state["seconds"].items()}
+        self.logger.truncate_after(self.saved_step + 1)  # rows after the checkpoint are logged again
+        self.learner.load_state_dict(state)
+        if self.done:  # otherwise the re-evaluation looks like training that did nothing
+            print(f"{out_dir}: the run was already complete ({self.progress} of {self.total} {self.learner.unit}s); "
+                  "evaluating it again (final_eval.json, actor.pt and the plots are rewritten)", flush=True)
+
+    def stop_on_error(self, error: FloatingPointError) -> FloatingPointError:
+        """Stop the learner, checkpoint what there is, and return the error to raise, saying where it is."""
+        with contextlib.suppress(BaseException):  # a learner thread died of ``error`` already
+            self.learner.stop(finish=False)
+        if self.checkpoint_dir is None:
+            return FloatingPointError(f"{error} (no checkpoint directory: nothing saved)")
+        path = self.save()
+        return FloatingPointError(f"{error}. Saved checkpoint {path} ({self.learner.unit} {self.progress}, everything "
+                                  "collected included); fix the cause (e.g. a lower optim.lr) and --resume")
+
+    def finish(self, out_dir: Path) -> dict:
+        """The learner stopped, a last checkpoint, the final evaluation with the learner's summary, ``actor.pt``."""
+        self.learner.stop()
+        if self.checkpoint_dir is not None and self.progress > self.saved_step:
+            self.save()
+        final = self.evaluate()
+        final.update(self.learner.summary(out_dir))
+        if self.seconds:
+            final["training"].update(wall_time_s=self.wall_time(), **{f"{k}_s": v for k, v in self.seconds.items()})
+        actor = self.learner.actor.state_dict()
+        torch.save({k: v.detach().cpu() for k, v in actor.items()}, out_dir / ACTOR_FILE)
+        return final
+
+
+def next_multiple(progress: float, every: int) -> float:
+    """The next progress at which a periodic job runs (never, when ``every`` is 0)."""
+    return float("inf") if every <= 0 else (int(progress) // every + 1) * every
+
+
+def evaluate_actor(actor, cfg, env_config, episodes: int) -> dict:
+    """Deterministic evaluation of the actor on the first ``episodes`` seeds of ``eval.split``."""
+    from pe_rlhf.envs import scene_seeds
+
+    seeds = scene_seeds(str(cfg.eval.split))[:episodes]
+    return evaluate(TorchRLPolicyAdapter(actor), seeds, env_config, progress=False).to_dict()
+
+
+def check_resumable(saved: dict | None, current: dict, checkpoint) -> None:
+    """Refuse a checkpoint trained under another env config (ValueError naming each field); warn when
+    another pe_rlhf version wrote it (the checkpoint format, checked on loading, is what must agree).
+    Checkpoints from before this record (``saved`` None) are taken as they are."""
+    if saved is None:
+        return
+    if saved.get("pe_rlhf_version") != current["pe_rlhf_version"]:
+        warnings.warn(f"{checkpoint} was written by pe_rlhf {saved.get('pe_rlhf_version')}, this is "
+                      f"{current['pe_rlhf_version']} (same checkpoint format: resuming)", stacklevel=3)
+    env, now = saved.get("env_config") or {}, current["env_config"]
+    bad = [f"env.{k}: checkpoint {env.get(k)!r}, now {v!r}" for k, v in now.items() if k in env and env[k] != v]
+    if bad:
+        raise ValueError(f"cannot resume from {checkpoint}: it was trained under another env config ("
+                         + "; ".join(bad) + "); resume with the run's own config.yaml values")
