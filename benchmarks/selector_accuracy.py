@@ -14,7 +14,10 @@ obstacle-blind IDM-MOBIL drives the train scenes as the agent, under the run's o
 so the states are those a PE-RLHF takeover meets. At every ``--every``-th takeover step both candidates
 are tried on copies of the simulator (and of the mentor or physics policy): the candidate's action, then
 its own driver for the rest of ``--hold`` steps (a takeover lasts at least 10), then IDM-MOBIL that sees
-obstacles (0.98 success on the test scenes) for the rest of ``--horizon`` steps. A candidate *fails* when
+obstacles (0.98 success on the test scenes) for the rest of ``--horizon`` steps (``--continuation own``). With
+``--continuation executed`` each candidate's action is followed by what the hybrid would execute instead: the
+mentor's action at every step unless the selector (the same values and threshold) prefers physics', so a
+candidate is judged by the step it decides, not by a manoeuvre that the selector would cut short. A candidate *fails* when
 its copy crashes or leaves the road within the horizon. On the *decisive* states (exactly one candidate fails) the selector is right when it
 picks the other one; reported per ``--epsilons`` value, with "always the mentor" and "always physics" as
 references, plus the advantage ``mean_k Q_k(s, a_mentor) - Q_k(s, a_phy)`` on the decisive states split by
@@ -68,6 +71,35 @@ def fails(env, action, policy, hold: int, horizon: int, oracle: IDMMobilPolicy) 
     return False
 
 
+def fails_executed(env, obs, action, mentor, physics, ensemble, eps: float, hold: int, horizon: int,
+                   oracle: IDMMobilPolicy) -> bool:
+    """On a copy of ``env``: ``action``, then the hybrid's choice between (copies of) the mentor's and physics'
+    actions by ``ensemble`` at threshold ``eps`` until step ``hold``, then the oracle until ``horizon``: did the car
+    crash or leave the road?"""
+    sim, mentor, physics = copy.deepcopy(env), copy.deepcopy(mentor), copy.deepcopy(physics)
+    oracle.reset()
+    for t in range(horizon):
+        if t == 0:
+            a = action
+        elif t < hold:
+            a_mentor, a_phy = np.asarray(mentor.act(sim), np.float32), np.asarray(physics(sim), np.float32)
+            a = a_mentor if advantage(ensemble, obs, a_mentor, a_phy, sim) >= eps else a_phy
+        else:
+            a = np.asarray(oracle(sim), np.float32)
+        obs, _, terminated, truncated, info = sim.step(a)
+        if terminated or truncated:
+            return bool(info.get("crash_vehicle") or info.get("crash_object") or info.get("out_of_road"))
+    return False
+
+
+def advantage(ensemble, obs, a_mentor, a_phy, env) -> float:
+    """``mean_k Q_k(s, a_mentor) - Q_k(s, a_phy)`` (the forecast reads the simulator ``env``)."""
+    with torch.no_grad():
+        pair = (torch.as_tensor(np.stack([obs, obs])), torch.as_tensor(np.stack([a_mentor, a_phy])))
+        q = ensemble.values(*pair, env=env) if getattr(ensemble, "needs_env", False) else ensemble.values(*pair)
+    return float((q[:, 0] - q[:, 1]).mean())
+
+
 def count_events(states: list[tuple]) -> int:
     """Decisive states come in runs (the steps of one approach to an obstacle): how many runs, counting
     states of the same scene at most 10 steps apart as one."""
@@ -110,17 +142,19 @@ def measure(run: Path | str, args, setup=None) -> dict:
             if takeover:
                 a_mentor = np.asarray(a_mentor, np.float32)
                 a_phy = np.asarray(physics(env), np.float32)  # the run's physics policy (its physics.* flags)
-                with torch.no_grad():
-                    pair = (torch.as_tensor(np.stack([obs, obs])), torch.as_tensor(np.stack([a_mentor, a_phy])))
-                    q = ensemble.values(*pair, env=env) if getattr(ensemble, "needs_env", False) else ensemble.values(*pair)
-                advantage = float((q[:, 0] - q[:, 1]).mean())
+                adv = advantage(ensemble, obs, a_mentor, a_phy, env)
                 seen += 1
                 if seen % args.every == 0 and seen <= args.every * args.max_per_scene:  # every k-th, capped a scene
                     differences.append(a_mentor - a_phy)
-                    states.append((advantage, fails(env, a_mentor, mentor.act, args.hold, args.horizon, oracle),
-                               fails(env, a_phy, physics, args.hold, args.horizon, oracle), seed, step))
+                    if args.continuation == "executed":
+                        outcome = [fails_executed(env, obs, a, mentor, physics, ensemble, eps_run, args.hold,
+                                                  args.horizon, oracle) for a in (a_mentor, a_phy)]
+                    else:
+                        outcome = [fails(env, a_mentor, mentor.act, args.hold, args.horizon, oracle),
+                                   fails(env, a_phy, physics, args.hold, args.horizon, oracle)]
+                    states.append((adv, *outcome, seed, step))
                 bar.update(1)
-                executed = a_mentor if advantage >= eps_run else a_phy
+                executed = a_mentor if adv >= eps_run else a_phy
             obs, _, terminated, truncated, _ = env.step(executed)
             done, step = terminated or truncated, step + 1
         if len(states) >= args.max_states:
@@ -129,7 +163,8 @@ def measure(run: Path | str, args, setup=None) -> dict:
     decisive = [s for s in states if s[1] != s[2]]
     mentor_safe = [s[0] for s in decisive if not s[1]]
     physics_safe = [s[0] for s in decisive if not s[2]]
-    out = {"run": str(run), "mentor": str(cfg.mentor.name), "selector_tau": float(cfg.selector.get("tau", 0.005)),
+    out = {"run": str(run), "mentor": str(cfg.mentor.name), "continuation": args.continuation,
+           "selector_tau": float(cfg.selector.get("tau", 0.005)),
            "epsilon_select": eps_run, "takeover_states": len(states), "decisive_states": len(decisive),
            "decisive_events": count_events(decisive), "scenes_driven": len({s[3] for s in states}),
            "mentor_fails": sum(s[1] for s in states), "physics_fails": sum(s[2] for s in states),
@@ -154,6 +189,9 @@ def main(argv=None):
     parser.add_argument("--value", default="expert", help="selector.value with --mentors (expert | expert:PATH | forecast)")
     parser.add_argument("--scenes", type=parse_scenes, default=parse_scenes("0-19"), help="train scene seeds, e.g. 0-19")
     parser.add_argument("--hold", type=int, default=10, help="steps each candidate drives before the oracle does")
+    parser.add_argument("--continuation", choices=("own", "executed"), default="own",
+                        help="after each candidate's action: its own driver (own) or the hybrid's choice between "
+                             "the mentor's and physics' actions (executed), until --hold")
     parser.add_argument("--horizon", type=int, default=40, help="steps of each counterfactual rollout")
     parser.add_argument("--epsilons", type=float, nargs="+", default=[0.0, 0.5, 1.5])
     parser.add_argument("--max-states", type=int, default=300, help="labelled takeover states per run")

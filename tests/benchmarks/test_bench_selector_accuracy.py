@@ -3,9 +3,16 @@
 from __future__ import annotations
 
 import json
+import math
 
+import numpy as np
 import pytest
 from _scripts import load_pe_rlhf_recipe, load_script
+
+from pe_rlhf.envs import make_gym_env
+from pe_rlhf.physics import IDMMobilPolicy, PhysicsConfig
+from pe_rlhf.training.builders import build_mentor, build_physics
+from pe_rlhf.training.config import driving_config
 
 
 def test_selector_accuracy_on_a_smoke_run(tmp_path):
@@ -41,3 +48,29 @@ def test_every_below_one_is_refused(capsys):
     with pytest.raises(SystemExit):
         load_script("benchmarks/selector_accuracy.py").main(["no-such-run", "--every", "0"])
     assert "--every 0: must be at least 1" in capsys.readouterr().err
+
+
+def test_the_executed_continuation_is_a_drivers_own_at_the_extreme_thresholds():
+    """``--continuation executed``: with a threshold below every advantage the hybrid executes the mentor at every
+    step (its own continuation), above every advantage physics: the same outcomes as ``fails`` with that driver."""
+    bench = load_script("benchmarks/selector_accuracy.py")
+    cfg, forecast = bench.expert_setup("adversarial", "forecast")
+    env = make_gym_env(driving_config(cfg))
+    obs, _ = env.reset(options={"scene_seed": 0})
+    mentor, physics = build_mentor(cfg), build_physics(cfg)
+    mentor.reset(env)
+    physics.reset()
+    oracle = IDMMobilPolicy(PhysicsConfig(see_obstacles=True))
+    for proposer, fails_alone in ((mentor, False), (SteersOff(), True)):  # the adversarial preset, a driver that exits
+        for eps, driver in ((-math.inf, proposer.act), (math.inf, physics)):
+            action = np.asarray(driver(env), np.float32)
+            executed = bench.fails_executed(env, obs, action, proposer, physics, forecast, eps, 15, 30, oracle)
+            assert executed == bench.fails(env, action, driver, 15, 30, oracle)
+            assert executed == (fails_alone and eps < 0)  # physics' continuation keeps the car on the road
+
+
+class SteersOff:
+    """A proposer that holds full steer and throttle: off the road within the hold."""
+
+    def act(self, env):
+        return np.array([1.0, 1.0], np.float32)
