@@ -13,7 +13,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from pe_rlhf.sweeps.claims import markdown_table, write_claims
+from pe_rlhf.apps.sweeps.claims import markdown_table, write_claims
 
 
 def main(argv=None) -> dict:

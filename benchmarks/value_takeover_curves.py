@@ -6,7 +6,7 @@ over training, per run, with the simulated mentor's fatigue when the run logged 
         amateur=runs/sweeps/mentor_proficiency/pe-rlhf__amateur__s0 --out docs/results/value_takeover.png
 
 Left panel: the value-takeover rate over the last 10 online batches (1,000 env steps;
-:func:`pe_rlhf.sweeps.plots.windowed_value_takeover_rate`), right: the cumulative rate the recipe logs, with
+:func:`pe_rlhf.apps.sweeps.plots.windowed_value_takeover_rate`), right: the cumulative rate the recipe logs, with
 ``train/mentor_fatigue`` on a second axis where logged. ``--json`` writes each run's windowed curve and its
 mean over the first and the last third of the online phase.
 """
@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pe_rlhf.sweeps.plots import run_curve, run_warmup_steps
+from pe_rlhf.apps.sweeps.plots import run_curve, run_warmup_steps
 
 
 def run_curves(run: Path) -> dict:

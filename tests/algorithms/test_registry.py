@@ -9,7 +9,7 @@ import pytest
 
 from pe_rlhf.algorithms import ALGORITHMS, EVALUATE, PROXY_Q, algorithm, recipe_names
 from pe_rlhf.baselines import METHODS
-from pe_rlhf.sweeps.methods import builtin_methods
+from pe_rlhf.apps.sweeps.methods import builtin_methods
 
 RECIPES = Path(__file__).resolve().parents[2] / "recipes"
 

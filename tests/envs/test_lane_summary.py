@@ -74,7 +74,7 @@ def test_evaluate_checkpoint_uses_the_runs_world(tmp_path):
     import torch
     from omegaconf import OmegaConf
 
-    from pe_rlhf.cli import main
+    from pe_rlhf.apps.cli import main
     from pe_rlhf.training import builders
     from pe_rlhf.training.config import load_config
     from pe_rlhf.training.trained_policy import run_world

@@ -11,7 +11,7 @@ from rich.console import Console
 from tensordict.nn import TensorDictModule, TensorDictSequential
 from torch import nn
 
-from pe_rlhf.cli import main
+from pe_rlhf.apps.cli import main
 from pe_rlhf.envs import make_gym_env, scene_seeds
 from pe_rlhf.evaluation import (
     POLICY_FACTORIES,

@@ -56,13 +56,13 @@ def test_seed_stats_and_their_text():
 
 
 def test_claims_still_export_the_interval():
-    from pe_rlhf.sweeps import claims
+    from pe_rlhf.apps.sweeps import claims
 
     assert claims.bootstrap_interval is bootstrap_interval
 
 
 def test_sweep_summary_error_bars_are_the_interval():
-    from pe_rlhf.sweeps.plots import _bars, _ci_yerr, _pyplot
+    from pe_rlhf.apps.sweeps.plots import _bars, _ci_yerr, _pyplot
 
     rows = [{"method": "pe-rlhf", "mentor": "-", "success_rate": seed_stats([0.2, 0.4, 0.9])},
             {"method": "idm-mobil", "mentor": "-", "success_rate": seed_stats([])}]

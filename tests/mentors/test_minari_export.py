@@ -12,7 +12,7 @@ minari = pytest.importorskip("minari")
 
 from _factories import FAST_CONFIG, DriverMentor, make_intervention_env  # noqa: E402
 
-from pe_rlhf import cli  # noqa: E402
+from pe_rlhf.apps import cli  # noqa: E402
 from pe_rlhf.envs import ENV_ID, DrivingConfig  # noqa: E402
 from pe_rlhf.mentors.minari_export import (  # noqa: E402
     directory_episodes,

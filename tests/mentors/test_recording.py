@@ -18,7 +18,7 @@ import pytest
 import torch
 from torchrl.data import TensorDictReplayBuffer
 
-from pe_rlhf import cli
+from pe_rlhf.apps import cli
 from pe_rlhf.envs import DrivingConfig, make_gym_env, scene_seeds
 from pe_rlhf.mentors.base import Mentor, MentorDecision
 from pe_rlhf.mentors.driver import PrivilegedDriver
@@ -146,7 +146,7 @@ def test_sigkill_loses_at_most_the_current_episode_and_reopen_continues(tmp_path
     out = tmp_path / "killed"
     name = _cli_mentor()
     if name:  # the real command line, with a registered simulated mentor
-        cmd = [sys.executable, "-m", "pe_rlhf.cli", "demo", "record", "--mentor", name, "--split", "train",
+        cmd = [sys.executable, "-m", "pe_rlhf.apps.cli", "demo", "record", "--mentor", name, "--split", "train",
                "--steps", "1000000", "--out", str(out), "--config-override", "horizon=40", "--no-progress"]
     else:
         name, script = "driver", tmp_path / "rec.py"

@@ -104,7 +104,7 @@ def test_bad_warmup_policy_fails_naming_the_field(sac_run, tmp_path):
 
 
 def test_evaluate_reads_a_baseline_run_folder(sac_run, tmp_path):
-    from pe_rlhf.cli import main as cli
+    from pe_rlhf.apps.cli import main as cli
 
     assert cli(["evaluate", "--checkpoint", str(sac_run), "--seeds", "1000", "--no-progress",
                 "--config-override", "horizon=50", "--json", str(tmp_path / "e.json")]) == 0

@@ -15,7 +15,7 @@ RECIPE_DIR = Path(__file__).resolve().parents[2] / "recipes" / "haco"
 
 
 def test_the_recipe_is_the_sweeps_haco_and_builds_no_selector():
-    from pe_rlhf.sweeps.methods import builtin_methods
+    from pe_rlhf.apps.sweeps.methods import builtin_methods
 
     recipe = load_config(RECIPE_DIR / "config.yaml", ["profile=cpu", "seed=3"])
     sweep = load_config(None, ["profile=cpu", "seed=3", *builtin_methods()["haco"].overrides])

@@ -34,7 +34,7 @@ def test_smoke_run_writes_every_output(tmp_path):
     assert reference["policy"] == "idm-mobil" and reference["seeds"] == saved["seeds"]
     assert 1 <= final["video"]["steps"] <= 100 and final["video"]["path"].endswith("test_episode.gif")
     # the trained agent evaluates from its run folder, reproducing the recipe's final evaluation
-    from pe_rlhf.cli import main as cli
+    from pe_rlhf.apps.cli import main as cli
 
     assert cli(["evaluate", "--checkpoint", str(tmp_path), "--seeds", "1000", "--no-progress",
                 "--config-override", "horizon=100", "--config-override", "min_blocks=2",

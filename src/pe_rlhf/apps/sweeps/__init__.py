@@ -3,10 +3,10 @@ task, resumable, summarised into one folder.
 
     pe-rlhf sweep recipes/sweeps/mentor_proficiency.yaml [--out DIR] [--address ADDR] [--max-parallel N] [--dry-run]
 
-Parts: :mod:`~pe_rlhf.sweeps.spec` (the YAML config, checked), :mod:`~pe_rlhf.sweeps.methods` (method ->
-recipe entry + overrides), :mod:`~pe_rlhf.sweeps.cells` (grid expansion, names, on-disk bookkeeping),
-:mod:`~pe_rlhf.sweeps.execution` (Ray tasks, progress), :mod:`~pe_rlhf.sweeps.summary` (``cells.csv``,
-``summary.csv``, ``summary.md``) and :mod:`~pe_rlhf.sweeps.plots`.
+Parts: :mod:`~pe_rlhf.apps.sweeps.spec` (the YAML config, checked), :mod:`~pe_rlhf.apps.sweeps.methods` (method ->
+recipe entry + overrides), :mod:`~pe_rlhf.apps.sweeps.cells` (grid expansion, names, on-disk bookkeeping),
+:mod:`~pe_rlhf.apps.sweeps.execution` (Ray tasks, progress), :mod:`~pe_rlhf.apps.sweeps.summary` (``cells.csv``,
+``summary.csv``, ``summary.md``) and :mod:`~pe_rlhf.apps.sweeps.plots`.
 
 Folder layout: ``OUT/sweep.yaml`` (the config as given), ``OUT/<cell>/`` (the recipe's run folder plus
 ``cell.json``), ``OUT/logs/<cell>.log``, ``OUT/cells.csv``, ``OUT/summary.{md,csv,png}``,
@@ -17,10 +17,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from pe_rlhf.sweeps.cells import Cell, check_cell_configs, expand
-from pe_rlhf.sweeps.execution import SweepReport, run_cells
-from pe_rlhf.sweeps.spec import SweepConfigError, SweepSpec, load_sweep, parse_sweep
-from pe_rlhf.sweeps.summary import DEFAULT_METRICS, METRICS, write_summary
+from pe_rlhf.apps.sweeps.cells import Cell, check_cell_configs, expand
+from pe_rlhf.apps.sweeps.execution import SweepReport, run_cells
+from pe_rlhf.apps.sweeps.spec import SweepConfigError, SweepSpec, load_sweep, parse_sweep
+from pe_rlhf.apps.sweeps.summary import DEFAULT_METRICS, METRICS, write_summary
 
 DEFAULT_ROOT = Path("runs") / "sweeps"
 

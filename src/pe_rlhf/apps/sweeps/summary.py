@@ -21,9 +21,9 @@ from typing import Any
 import numpy as np
 
 from pe_rlhf.evaluation.statistics import interval_text, seed_stats
-from pe_rlhf.sweeps.cells import CELL_FILE, FINAL_EVAL, NONE, Cell, cell_dir
-from pe_rlhf.sweeps.metrics import (DEFAULT_METRICS, METRICS, NAN, Metric, last_csv_row,  # noqa: F401 (re-exported)
-                                    logged_metrics, metric_values)
+from pe_rlhf.apps.sweeps.cells import CELL_FILE, FINAL_EVAL, NONE, Cell, cell_dir
+from pe_rlhf.apps.sweeps.metrics import (  # noqa: F401 (re-exported)
+    DEFAULT_METRICS, METRICS, NAN, Metric, last_csv_row, logged_metrics, metric_values)
 
 SUMMARY_MD, SUMMARY_CSV, CELLS_CSV = "summary.md", "summary.csv", "cells.csv"
 
@@ -95,7 +95,7 @@ def markdown_table(table: list[dict[str, Any]], metrics: Sequence[str]) -> str:
 
 def write_summary(out: str | Path, cells: Sequence[Cell], metrics: Sequence[str], title: str = "sweep",
                   description: str = "", plots: bool = True) -> dict[str, Path]:
-    """``cells.csv``, ``summary.csv``, ``summary.md`` (and the plots, :mod:`pe_rlhf.sweeps.plots`) in ``out``."""
+    """``cells.csv``, ``summary.csv``, ``summary.md`` (and the plots, :mod:`pe_rlhf.apps.sweeps.plots`) in ``out``."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     rows = cell_rows(out, cells)
@@ -113,7 +113,7 @@ def write_summary(out: str | Path, cells: Sequence[Cell], metrics: Sequence[str]
              markdown_table(table, metrics)]
     paths = {"cells": out / CELLS_CSV, "summary_csv": out / SUMMARY_CSV, "summary_md": out / SUMMARY_MD}
     if plots:
-        from pe_rlhf.sweeps.plots import plot_sweep
+        from pe_rlhf.apps.sweeps.plots import plot_sweep
 
         images = plot_sweep(out, cells, table, metrics)
         paths.update(images)

@@ -13,12 +13,12 @@ from pathlib import Path
 import pytest
 from _scripts import load_script
 
-from pe_rlhf.sweeps import SweepConfigError, check_cell_configs, expand, load_sweep, parse_sweep, run_sweep
-from pe_rlhf.sweeps.cells import CELL_FILE, FINAL_EVAL, attempt_argv, check_folder, plan, write_record
-from pe_rlhf.sweeps.execution import run_cells
-from pe_rlhf.sweeps.summary import aggregate, cell_rows, mean_std, write_summary
+from pe_rlhf.apps.sweeps import SweepConfigError, check_cell_configs, expand, load_sweep, parse_sweep, run_sweep
+from pe_rlhf.apps.sweeps.cells import CELL_FILE, FINAL_EVAL, attempt_argv, check_folder, plan, write_record
+from pe_rlhf.apps.sweeps.execution import run_cells
+from pe_rlhf.apps.sweeps.summary import aggregate, cell_rows, mean_std, write_summary
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 SMOKE = ["profile=smoke"]
 
 
@@ -121,7 +121,7 @@ def test_bad_files(tmp_path):
 
 
 def test_cli_dry_run_and_errors(tmp_path, capsys):
-    from pe_rlhf.cli import main
+    from pe_rlhf.apps.cli import main
 
     config = tmp_path / "eps.yaml"
     config.write_text("base: [profile=smoke]\nmethods: [pe-rlhf, idm-mobil]\nmentors: [amateur]\nseeds: [0, 1]\n"
@@ -139,7 +139,7 @@ def test_cli_dry_run_and_errors(tmp_path, capsys):
 
 
 def test_cli_only_selects_cells_by_name(tmp_path, capsys):
-    from pe_rlhf.cli import main
+    from pe_rlhf.apps.cli import main
 
     config = tmp_path / "eps.yaml"
     config.write_text("base: [profile=smoke]\nmethods: [pe-rlhf, haco, idm-mobil]\nseeds: [0, 1]\n")
@@ -244,7 +244,7 @@ def test_summary_aggregates_seeds_exactly(tmp_path):
 @pytest.mark.parametrize("axis, joined", [({"parameters": {"selector.epsilon_select": [0.5, 1.0]}}, True),
                                           ({"variants": {"idm_only": [], "mobil_only": []}}, False)])
 def test_summary_plot_joins_points_only_along_a_numeric_axis(tmp_path, axis, joined):
-    from pe_rlhf.sweeps.plots import _numeric_x, _panel, _pyplot
+    from pe_rlhf.apps.sweeps.plots import _numeric_x, _panel, _pyplot
 
     plt = _pyplot()
 
@@ -265,7 +265,7 @@ def test_summary_plot_joins_points_only_along_a_numeric_axis(tmp_path, axis, joi
 
 
 def test_windowed_value_takeover_rate_counts_only_online_batches_in_the_window():
-    from pe_rlhf.sweeps.plots import windowed_value_takeover_rate
+    from pe_rlhf.apps.sweeps.plots import windowed_value_takeover_rate
 
     # warm-up of 200 steps (2 batches), then batches of 100 steps: takeover steps 50, 20, 0, 40;
     # mentor chosen 40, 10, 0, 10 (the cumulative count below)
@@ -314,7 +314,7 @@ def test_two_cell_sweep_on_local_ray(tmp_path):
 def test_a_local_ray_runs_the_cells_at_normal_priority(monkeypatch):
     """Ray starts its workers at nice 15 unless told otherwise: beside any other job the cells then starve."""
     ray = pytest.importorskip("ray")
-    from pe_rlhf.sweeps.execution import RAY_WORKER_NICENESS, _init_ray
+    from pe_rlhf.apps.sweeps.execution import RAY_WORKER_NICENESS, _init_ray
 
     if ray.is_initialized():
         ray.shutdown()

@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from pe_rlhf.sweeps.claims import bootstrap_interval, claims_summary, markdown_table, write_claims
+from pe_rlhf.apps.sweeps.claims import bootstrap_interval, claims_summary, markdown_table, write_claims
 
 FIELDS = ["cell", "method", "mentor", "parameter", "seed", "status", "success_rate", "safety_violation",
           "train_safety_violations", "takeover_data_usage"]

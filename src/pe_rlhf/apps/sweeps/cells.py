@@ -17,8 +17,8 @@ import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
-from pe_rlhf.sweeps.methods import PROXY_Q_RECIPES, MethodSpec, proxy_q_config_path
-from pe_rlhf.sweeps.spec import MentorSpec, SweepConfigError, SweepSpec, Variant, yaml_value
+from pe_rlhf.apps.sweeps.methods import PROXY_Q_RECIPES, MethodSpec, proxy_q_config_path
+from pe_rlhf.apps.sweeps.spec import MentorSpec, SweepConfigError, SweepSpec, Variant, yaml_value
 
 NONE = "-"  # the label of an axis that does not apply to a cell
 FINAL_EVAL = "final_eval.json"

@@ -255,15 +255,15 @@ def add_demo_parser(subparsers: argparse._SubParsersAction) -> argparse.Argument
 
 
 def add_sweep_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
-    """``pe-rlhf sweep``: see :mod:`pe_rlhf.sweeps.cli`."""
-    from pe_rlhf.sweeps.cli import add_sweep_parser as add
+    """``pe-rlhf sweep``: see :mod:`pe_rlhf.apps.sweeps.cli`."""
+    from pe_rlhf.apps.sweeps.cli import add_sweep_parser as add
 
     return add(subparsers)
 
 
 def add_compare_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
-    """``pe-rlhf compare``: see :mod:`pe_rlhf.compare.cli`."""
-    from pe_rlhf.compare.cli import add_compare_parser as add
+    """``pe-rlhf compare``: see :mod:`pe_rlhf.apps.compare.cli`."""
+    from pe_rlhf.apps.compare.cli import add_compare_parser as add
 
     return add(subparsers)
 

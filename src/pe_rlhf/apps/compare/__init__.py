@@ -3,10 +3,11 @@
     pe-rlhf compare --row PE-RLHF=runs/lanes --row HACO=runs/haco_lanes \\
         --eval IDM-MOBIL=docs/results/idm-mobil_test.json --out runs/table1
 
-Parts: :mod:`~pe_rlhf.compare.rows` (which run folders / evaluation JSONs make each row, labels, order),
-:mod:`~pe_rlhf.compare.table` (the columns, read with :mod:`pe_rlhf.sweeps.summary`'s readers; mean
-[95% bootstrap CI] over seeds; ``table.md``, ``table.csv``), :mod:`~pe_rlhf.compare.plots` (``learning_curves.png``),
-:mod:`~pe_rlhf.compare.groups` (a figure per group of rows) and :mod:`~pe_rlhf.compare.cli`.
+Parts: :mod:`~pe_rlhf.apps.compare.rows` (which run folders / evaluation JSONs make each row, labels, order),
+:mod:`~pe_rlhf.apps.compare.table` (the columns, read with :mod:`pe_rlhf.apps.sweeps.summary`'s readers; mean
+[95% bootstrap CI] over seeds; ``table.md``, ``table.csv``), :mod:`~pe_rlhf.apps.compare.plots`
+(``learning_curves.png``), :mod:`~pe_rlhf.apps.compare.groups` (a figure per group of rows) and
+:mod:`~pe_rlhf.apps.compare.cli`.
 """
 
 from __future__ import annotations
@@ -14,10 +15,10 @@ from __future__ import annotations
 from collections.abc import Sequence
 from pathlib import Path
 
-from pe_rlhf.compare.groups import group_png, parse_group, select_group
-from pe_rlhf.compare.plots import LEARNING_CURVES_PNG, plot_learning_curves
-from pe_rlhf.compare.rows import CompareError, Row, Source, collect_rows, infer_label
-from pe_rlhf.compare.table import COLUMNS, aggregate_rows, markdown_table, write_table
+from pe_rlhf.apps.compare.groups import group_png, parse_group, select_group
+from pe_rlhf.apps.compare.plots import LEARNING_CURVES_PNG, plot_learning_curves
+from pe_rlhf.apps.compare.rows import CompareError, Row, Source, collect_rows, infer_label
+from pe_rlhf.apps.compare.table import COLUMNS, aggregate_rows, markdown_table, write_table
 
 
 def write_comparison(out: str | Path, runs: Sequence[str] = (), evaluations: Sequence[str] = (),

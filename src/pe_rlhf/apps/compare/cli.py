@@ -13,11 +13,11 @@ from __future__ import annotations
 import argparse
 import sys
 
-from pe_rlhf.compare.rows import CompareError
+from pe_rlhf.apps.compare.rows import CompareError
 
 
 def run_compare(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
-    from pe_rlhf.compare import write_comparison
+    from pe_rlhf.apps.compare import write_comparison
 
     order = [label.strip() for label in args.order.split(",") if label.strip()] if args.order else None
     try:

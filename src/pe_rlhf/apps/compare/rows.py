@@ -42,7 +42,7 @@ TRAINED, EVALUATION = "trained", "evaluation"
 PAPER_ORDER = ("IDM-MOBIL", "SAC-RS", "SAC-Lag", "PPO-RS", "PPO-Lag", "CPO", "CQL", "BC", "GAIL", "HG-DAgger",
                "IWR", "HACO", "HAIM-DRL", "PE-RLHF")
 _SEED_DIR = re.compile(r"^(seed|s)[_-]?\d+$")
-_SWEEP_CELL = re.compile(r"^(.+)__s\d+$")  # pe_rlhf.sweeps.cells names: METHOD[__MENTOR][__PARAMETER]__sSEED
+_SWEEP_CELL = re.compile(r"^(.+)__s\d+$")  # pe_rlhf.apps.sweeps.cells names: METHOD[__MENTOR][__PARAMETER]__sSEED
 
 
 class CompareError(ValueError):

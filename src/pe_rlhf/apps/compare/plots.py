@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pe_rlhf.compare.rows import TRAINED, Row
+from pe_rlhf.apps.compare.rows import TRAINED, Row
 
 LEARNING_CURVES_PNG = "learning_curves.png"
 # (metrics.csv column, panel title, final_eval.json key for the final test mark / evaluation rows' level)

@@ -3,7 +3,7 @@
     name: epsilon_sensitivity            # optional (default: the file's stem); names OUT by default
     description: ...                     # optional, copied into summary.md
     base: [profile=cpu]                  # recipe overrides for every cell (list of key=value, or a mapping)
-    methods: [pe-rlhf, haco]             # built-in names (pe_rlhf.sweeps.methods), or mappings:
+    methods: [pe-rlhf, haco]             # built-in names (pe_rlhf.apps.sweeps.methods), or mappings:
       # - {name: haco-lanes, method: haco, overrides: [env.lane_features=true]}   (a variant of a built-in)
       # - {name: sac-rs-fast, recipe: sac_rs, overrides: [...], mentor_key: null}  (from a recipe entry)
     mentors: [professional, amateur]     # optional axis: names, or {label, name, kwargs}
@@ -12,7 +12,7 @@
       selector.epsilon_select: [0, 0.25, 0.5]
     variants:                            # optional axis: label -> overrides (crossed with parameters)
       idm_only: [physics.use_mobil=false]
-    metrics: [success_rate, safety_violation]   # columns of summary.md (pe_rlhf.sweeps.metrics.METRICS)
+    metrics: [success_rate, safety_violation]   # columns of summary.md (pe_rlhf.apps.sweeps.metrics.METRICS)
     resources: {num_cpus: 1}             # per cell (Ray task); torch runs that many threads
 
 The grid is method x mentor x parameter x seed; a method without a mentor (``mentor_key: null``, e.g.
@@ -30,7 +30,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
-from pe_rlhf.sweeps.methods import MethodSpec, builtin_methods, recipe_names
+from pe_rlhf.apps.sweeps.methods import MethodSpec, builtin_methods, recipe_names
 
 TOP_LEVEL = ("name", "description", "base", "methods", "mentors", "seeds", "parameters", "variants", "metrics",
              "resources")
@@ -236,7 +236,7 @@ def _variants(parameters: Any, variants: Any) -> tuple[Variant, ...]:
 
 def parse_sweep(raw: Any, default_name: str = "sweep") -> SweepSpec:
     """A checked :class:`SweepSpec` from a loaded YAML mapping; raises :class:`SweepConfigError`."""
-    from pe_rlhf.sweeps.metrics import DEFAULT_METRICS, METRICS
+    from pe_rlhf.apps.sweeps.metrics import DEFAULT_METRICS, METRICS
 
     if not isinstance(raw, Mapping):
         raise SweepConfigError(f"sweep config must be a mapping of fields, got {type(raw).__name__}")

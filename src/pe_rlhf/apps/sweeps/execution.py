@@ -18,8 +18,8 @@ import traceback
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from pe_rlhf.sweeps.cells import FINAL_EVAL, Cell, attempt_argv, cell_dir, log_path, plan, write_record
-from pe_rlhf.sweeps.methods import PROXY_Q_RECIPES, proxy_q_config_path
+from pe_rlhf.apps.sweeps.cells import FINAL_EVAL, Cell, attempt_argv, cell_dir, log_path, plan, write_record
+from pe_rlhf.apps.sweeps.methods import PROXY_Q_RECIPES, proxy_q_config_path
 
 THREAD_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS")
 

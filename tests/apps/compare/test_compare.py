@@ -13,9 +13,9 @@ from pathlib import Path
 import pytest
 import yaml
 
-from pe_rlhf.cli import main as cli_main
-from pe_rlhf.compare import CompareError, collect_rows, infer_label, write_comparison
-from pe_rlhf.compare.rows import load_run
+from pe_rlhf.apps.cli import main as cli_main
+from pe_rlhf.apps.compare import CompareError, collect_rows, infer_label, write_comparison
+from pe_rlhf.apps.compare.rows import load_run
 
 pytestmark = pytest.mark.usefixtures("one_thread_module")
 
@@ -168,7 +168,7 @@ def test_offline_row_is_a_dotted_level_at_its_final_test_value(tmp_path, monkeyp
     a trained row with env steps gets a dot at its last step instead."""
     import matplotlib.pyplot as plt
 
-    from pe_rlhf.compare.plots import plot_learning_curves
+    from pe_rlhf.apps.compare.plots import plot_learning_curves
 
     make_run(tmp_path / "bc", {"method": "bc", "seed": 0, "data": {"mentor": "professional"}},
              _final(dict(zip(TEST_KEYS, (1.0, 0.25, 0.0, 5.0, 1.0, 0.0))), {"env_steps": 0}, method="BC"),
@@ -332,7 +332,7 @@ def test_group_figures_hold_their_rows_and_the_reference_levels(haco_dir, tmp_pa
 
 
 def test_group_specs_are_checked_before_anything_is_written(haco_dir, tmp_path, capsys):
-    from pe_rlhf.compare import parse_group, select_group
+    from pe_rlhf.apps.compare import parse_group, select_group
 
     assert parse_group(" rl = SAC-RS, PPO-RS ,") == ("rl", ["SAC-RS", "PPO-RS"])
     for bad in ("rl", "=HACO", "r l=HACO", "rl="):
@@ -348,7 +348,7 @@ def test_group_specs_are_checked_before_anything_is_written(haco_dir, tmp_path, 
 
 
 def test_learning_curve_mean_and_band_over_seeds(haco_dir):
-    from pe_rlhf.compare.plots import row_curve
+    from pe_rlhf.apps.compare.plots import row_curve
 
     rows, _ = collect_rows([str(haco_dir)])
     steps, mean, low, high = row_curve(rows[0], "train/safety_violations_total")

@@ -1,6 +1,6 @@
 """Claims over seeds: mean and a 95% bootstrap confidence interval per method and mentor, from a sweep's cells.
 
-``claims_summary(cells_csv)`` reads a sweep folder's ``cells.csv`` (:mod:`pe_rlhf.sweeps.summary`) and returns
+``claims_summary(cells_csv)`` reads a sweep folder's ``cells.csv`` (:mod:`pe_rlhf.apps.sweeps.summary`) and returns
 ``{claim: {method: {"success": [mean, lo, hi], "test_safety": [...], "train_violations": [...],
 "takeover_usage": [...], "seeds": N}}}``, a claim being the mentor's label (``professional``,
 ``adversarial``) and a method the sweep's name with ``-`` as ``_`` (``pe_rlhf``, ``haco``, ``idm_mobil``).

@@ -1,5 +1,5 @@
 """The spec's Table 1 from collected rows: per seed the values (:data:`COLUMNS`, read as the sweep summary
-reads a cell: :mod:`pe_rlhf.sweeps.summary`), per row the mean over its seeds and its 95% bootstrap CI
+reads a cell: :mod:`pe_rlhf.apps.sweeps.summary`), per row the mean over its seeds and its 95% bootstrap CI
 (:mod:`pe_rlhf.evaluation.statistics`),
 written as ``table.md`` and ``table.csv``.
 
@@ -26,11 +26,11 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from pe_rlhf.compare.plots import row_curve
+from pe_rlhf.apps.compare.plots import row_curve
 from pe_rlhf.evaluation.statistics import interval_text, seed_stats
-from pe_rlhf.compare.rows import TRAINED, Row
-from pe_rlhf.sweeps.metrics import METRICS, NAN, Metric, last_csv_row, logged_metrics, metric_values
-from pe_rlhf.sweeps.summary import write_csv
+from pe_rlhf.apps.compare.rows import TRAINED, Row
+from pe_rlhf.apps.sweeps.metrics import METRICS, NAN, Metric, last_csv_row, logged_metrics, metric_values
+from pe_rlhf.apps.sweeps.summary import write_csv
 
 TABLE_MD, TABLE_CSV = "table.md", "table.csv"
 

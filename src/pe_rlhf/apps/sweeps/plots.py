@@ -21,8 +21,8 @@ from typing import Any
 
 import numpy as np
 
-from pe_rlhf.sweeps.cells import NONE, Cell, cell_dir
-from pe_rlhf.sweeps.metrics import METRICS
+from pe_rlhf.apps.sweeps.cells import NONE, Cell, cell_dir
+from pe_rlhf.apps.sweeps.metrics import METRICS
 
 CURVES = {"value_takeover_rate": ("train/value_takeover_rate", "value-takeover rate (cumulative)"),
           "takeover_rate": ("train/takeover_rate", "takeover rate (per batch)"),

@@ -17,10 +17,10 @@ from pathlib import Path
 import pytest
 
 import pe_rlhf
-from pe_rlhf.cli import SUBCOMMANDS, build_parser
-from pe_rlhf.cli import main as cli_main
+from pe_rlhf.apps.cli import SUBCOMMANDS, build_parser
+from pe_rlhf.apps.cli import main as cli_main
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 RECIPES = sorted(p.parent.name for p in (ROOT / "recipes").glob("*/train.py"))
 ENV = {**os.environ, "PYTHONPATH": str(ROOT / "src"), "SDL_VIDEODRIVER": "dummy", "OMP_NUM_THREADS": "1"}
 ENV.pop("PE_RLHF_DEBUG", None)
@@ -32,9 +32,9 @@ def run(*argv: str, **env: str) -> subprocess.CompletedProcess:
 
 
 def pe_rlhf_command() -> list[str]:
-    """The installed ``pe-rlhf`` console script beside this interpreter, else ``python -m pe_rlhf.cli``."""
+    """The installed ``pe-rlhf`` console script beside this interpreter, else ``python -m pe_rlhf.apps.cli``."""
     script = Path(sys.executable).with_name("pe-rlhf")
-    return [str(script)] if script.exists() else [sys.executable, "-m", "pe_rlhf.cli"]
+    return [str(script)] if script.exists() else [sys.executable, "-m", "pe_rlhf.apps.cli"]
 
 
 # -- recipes: the real command line ------------------------------------------------------------------

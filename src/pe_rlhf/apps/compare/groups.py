@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import re
 
-from pe_rlhf.compare.rows import TRAINED, CompareError, Row
+from pe_rlhf.apps.compare.rows import TRAINED, CompareError, Row
 
 _NAME = re.compile(r"[A-Za-z0-9_-]+")
 

@@ -14,8 +14,8 @@ import re
 import shutil
 from pathlib import Path
 
-from pe_rlhf.sweeps.cells import cell_dir, check_folder, is_finished
-from pe_rlhf.sweeps.spec import SweepConfigError, load_sweep
+from pe_rlhf.apps.sweeps.cells import cell_dir, check_folder, is_finished
+from pe_rlhf.apps.sweeps.spec import SweepConfigError, load_sweep
 
 
 def _state(out: Path, cell) -> str:
@@ -56,7 +56,7 @@ def select_cells(cells, patterns: list[str] | None, parser: argparse.ArgumentPar
 
 
 def run_sweep_command(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
-    from pe_rlhf.sweeps import DEFAULT_ROOT, check_cell_configs, expand, run_cells, write_summary
+    from pe_rlhf.apps.sweeps import DEFAULT_ROOT, check_cell_configs, expand, run_cells, write_summary
 
     if args.max_parallel is not None and args.max_parallel < 1:
         parser.error(f"--max-parallel {args.max_parallel}: must be >= 1")
