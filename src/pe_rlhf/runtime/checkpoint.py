@@ -226,8 +226,8 @@ def short_error(e: BaseException, limit: int = 300) -> str:
 
 
 def _buffer_is_empty(buffer) -> bool:
-    storage = buffer._storage
-    return not getattr(storage, "initialized", True) or len(buffer) == 0
+    """Nothing to save: no rows, or a lazy storage never written (a buffer of buffers answers ``len`` only)."""
+    return len(buffer) == 0 or not getattr(getattr(buffer, "_storage", None), "initialized", True)
 
 
 def _sanitize_prefetch(buffer_dir: Path, buffer) -> None:

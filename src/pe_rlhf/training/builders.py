@@ -50,6 +50,7 @@ from pe_rlhf.transforms import (
 )
 from pe_rlhf.threads import thread_budget
 from pe_rlhf.training.model_builders import build_actor, build_loss, obs_dim  # noqa: F401 (re-exported)
+from pe_rlhf.training.takeover_replay import TakeoverBalancedReplayBuffer
 from pe_rlhf.training.value_expert import load_value_expert, parse_value_source
 
 OBS_DIM = 250  # the default world's observation (240 lidar beams); obs_dim(cfg) follows env.lidar_beams and env.lane_features
@@ -293,9 +294,15 @@ def push_ensemble_weights(collector: BaseCollector, ensemble: QEnsemble | None) 
     ray.get([r.cascade_execute.remote(f"{WORKER_ENSEMBLE_PATH}.load_state_dict", state) for r in remotes])
 
 
-def build_replay_buffer(cfg) -> TensorDictReplayBuffer:
-    return TensorDictReplayBuffer(storage=LazyTensorStorage(int(cfg.replay_buffer.size)),
-                                  batch_size=int(cfg.replay_buffer.batch_size))
+def build_replay_buffer(cfg, balanced: bool = False) -> TensorDictReplayBuffer | TakeoverBalancedReplayBuffer:
+    """The learner's buffer: uniform, or with ``balanced`` and ``replay_buffer.takeover_share`` set, takeover rows
+    kept apart with that share of every batch
+    (:class:`~pe_rlhf.training.takeover_replay.TakeoverBalancedReplayBuffer`)."""
+    rb = cfg.replay_buffer
+    share = rb.get("takeover_share")
+    if balanced and share is not None:
+        return TakeoverBalancedReplayBuffer(int(rb.size), int(rb.batch_size), float(share))
+    return TensorDictReplayBuffer(storage=LazyTensorStorage(int(rb.size)), batch_size=int(rb.batch_size))
 
 
 def build_optimizers(cfg, loss: PERLHFLoss) -> dict[str, torch.optim.Optimizer]:

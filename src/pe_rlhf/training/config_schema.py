@@ -160,6 +160,8 @@ class CollectorConfig:
 class ReplayBufferConfig:
     size: int = knob(100000, rule_int(1))
     batch_size: int = knob(1024, rule_int(1))
+    # null: one uniform buffer; a share s: takeover rows kept apart, up to s of every batch (authors' code: 0.5)
+    takeover_share: Optional[float] = knob(None, rule_optional(rule_number(0, 1)))
 
 
 @dataclass

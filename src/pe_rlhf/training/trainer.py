@@ -199,7 +199,8 @@ class ProxyQLearner(Learner):
         if self.device is not None:
             self.loss.to(self.device)  # actor, critics, targets (the actor's parameters are the loss's)
         self.optimizers = builders.build_optimizers(cfg, self.loss)
-        self.replay, self.warmup_buffer = builders.build_replay_buffer(cfg), builders.build_replay_buffer(cfg)
+        self.replay = builders.build_replay_buffer(cfg, balanced=True)
+        self.warmup_buffer = builders.build_replay_buffer(cfg)
         fitted = cfg.selector.enabled and builders.value_is_fitted(cfg)  # an expert is frozen: never fitted
         self.schedule = EnsembleSchedule(int(cfg.collector.warmup_steps), int(cfg.selector.refresh_every) if fitted else 0,
                                          int(cfg.selector.warmup_fit_steps) if fitted else 0,
