@@ -1,0 +1,178 @@
+"""Tests of ``pe_rlhf.runtime.run.Run`` with a learner that is no method of ours.
+
+``Run`` knows no method: anything with the :class:`~pe_rlhf.runtime.run.Learner` hooks trains under it. The
+learner here regresses the actor's ``loc`` onto a fixed target action from synthetic observations (one Adam
+step per batch, ``BATCH`` frames a batch), so the tests can check what ``Run`` promises on its own: the
+cadence of rows, evaluations and checkpoints; a resume that continues bit for bit; a non-finite loss that
+keeps a checkpoint and says where; the finish (``actor.pt``, the final evaluation on the real driving env).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from types import SimpleNamespace
+
+import pytest
+import torch
+from tensordict import TensorDict
+
+from pe_rlhf.envs import DrivingConfig
+from pe_rlhf.envs.observation import observation_size
+from pe_rlhf.modules.networks import make_actor
+from pe_rlhf.runtime.checkpoint import list_checkpoints
+from pe_rlhf.runtime.run import ACTOR_FILE, Learner, Run, next_multiple
+
+BATCH = 10
+ENV = DrivingConfig(lidar_beams=8, horizon=20, min_blocks=1, max_blocks=1, split="train")
+TARGET = torch.tensor([0.5, -0.25])
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+
+class RegressionLearner(Learner):
+    """The actor's ``loc`` pulled towards ``TARGET``; ``poison_at``: the loss turns NaN at that progress."""
+
+    name, timers = "regression", ("collect", "update")
+
+    def __init__(self, total: int, seed: int = 0, poison_at: int | None = None):
+        torch.manual_seed(seed)
+        self.env_config, self.total, self.poison_at = ENV, total, poison_at
+        self.actor = make_actor(observation_size(ENV.lidar_beams, ENV.lane_features), hidden=(16,))
+        self.optimizer = torch.optim.Adam(self.actor.parameters(), lr=1e-2)
+        self.progress, self.updates = 0, 0
+
+    def batches(self):
+        while self.progress < self.total:
+            obs = torch.randn(BATCH, observation_size(ENV.lidar_beams, ENV.lane_features))
+            yield TensorDict({"observation": obs}, [BATCH])
+
+    def learn(self, batch) -> dict[str, float]:
+        loss = (self.actor.module[0](batch)["loc"] - TARGET).pow(2).mean()
+        self.progress += BATCH
+        if self.poison_at is not None and self.progress >= self.poison_at:
+            loss = loss * float("nan")
+        if not torch.isfinite(loss):
+            raise FloatingPointError(f"non-finite loss at frame {self.progress}")
+        self.optimizer.zero_grad()
+        loss.backward()
+        self.optimizer.step()
+        self.updates += 1
+        return {"loss": loss.item()}
+
+    def checkpoint_objects(self, checkpoint=None) -> dict:
+        return {"modules": {"actor": self.actor}, "optimizers": {"actor": self.optimizer}}
+
+    def state_dict(self) -> dict:
+        return {"updates": self.updates}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.progress, self.updates = int(state["step"]), int(state["updates"])
+
+    def summary(self, out_dir: Path) -> dict:
+        return {"algorithm": "regression", "training": {"frames": self.progress, "updates": self.updates}}
+
+
+class ListLogger:
+    def __init__(self):
+        self.rows: list[tuple[int, dict]] = []
+
+    def log(self, step: int, metrics: dict) -> None:
+        self.rows.append((step, dict(metrics)))
+
+    def truncate_after(self, step: int) -> None:
+        self.rows = [(s, m) for s, m in self.rows if s < step]
+
+
+def _cfg(log_every: int = 1, keep: int = 10):
+    return SimpleNamespace(eval=SimpleNamespace(split="train", episodes=1), checkpoint=SimpleNamespace(keep=keep),
+                           logger=SimpleNamespace(log_every=log_every))
+
+
+def _run(tmp_path, learner, logger=None, *, total=60, eval_every=0, checkpoint_every=20, log_every=1):
+    return Run(_cfg(log_every), learner, logger or ListLogger(), tmp_path / "checkpoints", total=total,
+               eval_every=eval_every, checkpoint_every=checkpoint_every)
+
+
+def _params(module) -> dict[str, torch.Tensor]:
+    return {k: v.detach().clone() for k, v in module.state_dict().items()}
+
+
+def _steps(tmp_path) -> list[int]:
+    """The steps of the checkpoints kept under the run's folder."""
+    return [int(c.name.split("_")[1]) for c in list_checkpoints(tmp_path / "checkpoints")]
+
+
+def test_next_multiple():
+    assert next_multiple(0, 20) == 20 and next_multiple(20, 20) == 40 and next_multiple(39, 20) == 40
+    assert next_multiple(5, 0) == float("inf")
+
+
+def test_a_run_learns_and_keeps_its_cadence(tmp_path):
+    logger = ListLogger()
+    run = _run(tmp_path, RegressionLearner(total=60), logger, eval_every=30, checkpoint_every=20, log_every=4)
+    final = run.train(tmp_path)
+    steps = [s for s, _ in logger.rows]
+    # a row every 4th batch (40), with each evaluation (30, 60) and the last (60)
+    assert steps == [30, 40, 60]
+    assert all("eval/success_rate_mean" in m for s, m in logger.rows if s in (30, 60))
+    assert "eval/success_rate_mean" not in dict(logger.rows)[40]
+    assert set(m["time/update_seconds"] >= 0 for _, m in logger.rows) == {True}
+    assert _steps(tmp_path) == [20, 40, 60]
+    # the finish: the final evaluation (1 episode) with the learner's summary and the timers, and actor.pt
+    assert final["algorithm"] == "regression" and final["training"]["frames"] == 60
+    assert final["training"]["update_s"] >= 0 and final["success_rate"]["mean"] in (0.0, 1.0)
+    saved = torch.load(tmp_path / ACTOR_FILE, weights_only=True)
+    assert saved.keys() == run.learner.actor.state_dict().keys()
+    # learning progress: the loss fell
+    losses = [m["loss"] for _, m in logger.rows]
+    assert losses[-1] < losses[0]
+
+
+def test_resume_continues_bit_for_bit(tmp_path):
+    whole = RegressionLearner(total=60)
+    _run(tmp_path / "whole", whole, checkpoint_every=20).train(tmp_path / "whole")
+
+    # the same run, cut after 40 frames (the session ends), then resumed into fresh objects
+    cut = tmp_path / "cut"
+    first = _run(cut, RegressionLearner(total=40), checkpoint_every=20)
+    first.train(cut)
+    logger = ListLogger()
+    logger.rows = [(s, m) for s, m in first.logger.rows] + [(50, {"stale": 1.0})]  # logged after the checkpoint
+    again = RegressionLearner(total=60, seed=123)  # other initial weights: all must come from the checkpoint
+    resumed = _run(cut, again, logger, checkpoint_every=20)
+    resumed.train(cut, resume=True)
+    # torch.manual_seed is restored from the checkpoint, so the synthetic batches continue as they would have
+    for k, v in _params(whole.actor).items():
+        assert torch.equal(v, _params(again.actor)[k]), k
+    assert again.updates == 6  # the learner's own state came back: 4 updates before the cut, 2 after
+    assert [s for s, _ in logger.rows] == [10, 20, 30, 40, 50, 60] and "stale" not in dict(logger.rows)[50]
+
+
+def test_resume_of_a_finished_run_evaluates_it_again(tmp_path, capsys):
+    _run(tmp_path, RegressionLearner(total=20), checkpoint_every=20, total=20).train(tmp_path)
+    learner = RegressionLearner(total=20, seed=5)
+    final = _run(tmp_path, learner, checkpoint_every=20, total=20).train(tmp_path, resume=True)
+    assert "already complete (20 of 20 frames)" in capsys.readouterr().out
+    assert final["training"]["frames"] == 20
+
+
+def test_resume_without_a_checkpoint_says_so(tmp_path):
+    with pytest.raises(FileNotFoundError, match="no complete checkpoint"):
+        _run(tmp_path, RegressionLearner(total=20)).train(tmp_path, resume=True)
+
+
+def test_a_non_finite_loss_keeps_a_checkpoint_and_says_where(tmp_path):
+    run = _run(tmp_path, RegressionLearner(total=60, poison_at=30), checkpoint_every=100)
+    where = r"non-finite loss at frame 30\. Saved checkpoint .*ckpt_0+30 \(frame 30.*--resume"
+    with pytest.raises(FloatingPointError, match=where):
+        run.train(tmp_path)
+    assert _steps(tmp_path) == [30]
+    assert not (tmp_path / ACTOR_FILE).exists()  # no finish after an error
+
+
+def test_resume_refuses_another_env_config(tmp_path):
+    _run(tmp_path, RegressionLearner(total=20), checkpoint_every=20, total=20).train(tmp_path)
+    other = RegressionLearner(total=40)
+    other.env_config = DrivingConfig(lidar_beams=8, horizon=30, min_blocks=1, max_blocks=1, split="train")
+    with pytest.raises(ValueError, match=r"env\.horizon: checkpoint 20, now 30"):
+        _run(tmp_path, other, total=40).train(tmp_path, resume=True)
