@@ -22,8 +22,12 @@ venv: $(STAMP)
 run: $(STAMP)
 	SDL_VIDEODRIVER=dummy $(PY) recipes/pe_rlhf/train.py profile=quick --compare idm-mobil
 
+# A worker per core (pytest-xdist), whole test files per worker so that each module fixture runs once (loadgroup's
+# xdist_group does not group under pytest 9: it renames `_nodeid`); then the tests that time themselves, alone,
+# so that no other worker steals their cycles.
 test: $(STAMP)
-	SDL_VIDEODRIVER=dummy $(PY) -m pytest -q
+	SDL_VIDEODRIVER=dummy $(PY) -m pytest -q -n auto --dist loadfile -m 'not slow and not timing'
+	SDL_VIDEODRIVER=dummy $(PY) -m pytest -q -m timing
 	$(MAKE) --no-print-directory docs
 
 # The docs site (mkdocs.yml, docs/): strict, so a broken link, anchor or docstring fails; built into site/.

@@ -26,6 +26,16 @@ if _TESTS not in sys.path:
 import pytest  # noqa: E402
 
 
+def pytest_configure(config):
+    """Under pytest-xdist (``make test``: ``-n auto``), each worker takes its share of the cores for torch's
+    intra-op threads: N workers each spinning up every core's worth of threads would fight over them."""
+    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "0"))
+    if workers > 1:
+        import torch
+
+        torch.set_num_threads(max(1, (os.cpu_count() or 1) // workers))
+
+
 @pytest.fixture
 def one_thread():
     """Small nets: one intra-op thread is faster, and immune to oversubscription on a loaded machine."""

@@ -12,7 +12,8 @@ def bench():
 
 
 def test_extreme_thresholds_execute_the_mentor_or_physics(bench, tmp_path):
-    rows = bench.main(["--mentors", "professional", "--scenes", "0-2", "--epsilons", "-1000000", "1000000",
+    # one scene holds every case: on train scene 1 the professional takes over 58% of IDM-MOBIL's steps (scene 0: none)
+    rows = bench.main(["--mentors", "professional", "--scenes", "1-1", "--epsilons", "-1000000", "1000000",
                        "--json", str(tmp_path / "floor.json")])
     by_row = {r["row"]: r for r in rows}
     alone, as_is = by_row["idm-mobil"], by_row["as-is"]
@@ -30,7 +31,7 @@ def test_takeover_rates_watch_each_driver(bench):
 
 
 def test_warmup_rows_the_mentor_drives_every_step_and_an_extreme_threshold_keeps_it(bench):
-    rows = bench.warmup_rows(["professional"], [0, 1], "train", "forecast", [-1e6])
+    rows = bench.warmup_rows(["professional"], [0], "train", "forecast", [-1e6])  # one scene: the mentor drives all
     alone, judged = rows
     assert alone["row"] == "warmup" and alone["takeover_share"] == 1.0 and alone["mentor_share"] == 1.0
     # a threshold no forecast can beat executes the mentor at every step: the paper's warm-up, step for step

@@ -515,6 +515,7 @@ def test_gymnasium_registration():
 # -- speed ----------------------------------------------------------------------------------------------------
 
 
+@pytest.mark.timing
 def test_step_speed_guard(env):
     policy = IDMMobilPolicy()
     env.reset(options={"scene_seed": TEST_SEEDS[3]})

@@ -198,6 +198,7 @@ def test_mismatched_arrays(lidar):
         lidar.scan(np.zeros(3), 0.0, np.ones((3, 2)), np.zeros(3), np.ones(3), np.ones(3))
 
 
+@pytest.mark.timing
 def test_performance(lidar):
     rng = np.random.default_rng(1)
     n = 20

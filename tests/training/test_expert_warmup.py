@@ -13,20 +13,12 @@ from tensordict import TensorDict
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from pe_rlhf.baselines import load_baseline_actor
-from pe_rlhf.baselines import main as baseline_main
 from pe_rlhf.training import builders
 from pe_rlhf.training.config import ConfigError, driving_config, load_config
 from pe_rlhf.training.trained_policy import load_run_actor, run_observation_size
 
 pytestmark = [pytest.mark.usefixtures("one_thread_module"),
               pytest.mark.filterwarnings("ignore::FutureWarning"), pytest.mark.filterwarnings("ignore::UserWarning")]
-
-
-@pytest.fixture(scope="module")
-def sac_run(tmp_path_factory):
-    out = tmp_path_factory.mktemp("sac_rs")
-    baseline_main("sac_rs", ["profile=smoke", "--out", str(out)])
-    return out
 
 
 def _cfg(*overrides):

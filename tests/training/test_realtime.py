@@ -29,6 +29,7 @@ FRAME_COLUMNS = ("time/frame_ms_mean", "time/frame_jitter_ms_p95", "time/frame_j
 # --------------------------------------------------------------------------- RealtimePacing
 
 
+@pytest.mark.timing
 def test_pacing_holds_the_rate_across_resets():
     from torchrl.envs import GymEnv
 
@@ -47,6 +48,7 @@ def test_pacing_holds_the_rate_across_resets():
     assert pacing.frame_stats(last=5)["frames"] == 5
 
 
+@pytest.mark.timing
 def test_clock_is_deadline_based_and_reanchors_after_a_stall():
     # Periods long against scheduler noise (a busy 2-core CI machine oversleeps by ~10-20 ms).
     pacing = RealtimePacing(hz=10)  # 100 ms
@@ -215,6 +217,7 @@ def test_invalid_pacing_and_async_settings_name_the_field(overrides, field):
     assert info.value.field == field and field in str(info.value)
 
 
+@pytest.mark.timing
 def test_recipe_with_async_updates_and_pacing_logs_frame_times(tmp_path):
     final = load_pe_rlhf_recipe().main(["profile=smoke", "optim.async_updates=true", "collector.realtime_hz=50",
                                  "eval.every_frames=0", "checkpoint.every_frames=150", "--out", str(tmp_path)])

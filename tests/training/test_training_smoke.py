@@ -9,9 +9,25 @@ import math
 import pytest
 from _scripts import load_pe_rlhf_recipe
 
+SMOKE_RUN = ["profile=smoke", "--compare", "idm-mobil"]
 
-def test_smoke_run_writes_every_output(tmp_path):
-    final = load_pe_rlhf_recipe().main(["profile=smoke", "--out", str(tmp_path), "--compare", "idm-mobil"])
+
+@pytest.fixture(scope="module")
+def smoke_run(tmp_path_factory):
+    """One smoke run (``SMOKE_RUN``): its folder and the summary the recipe returned."""
+    out = tmp_path_factory.mktemp("smoke_run")
+    return out, load_pe_rlhf_recipe().main([*SMOKE_RUN, "--out", str(out)])
+
+
+def _logged(out, final) -> tuple:
+    """Every logged number but the timings, and the final evaluation's rates."""
+    rows = list(csv.DictReader(open(out / "metrics.csv")))
+    return ([{k: v for k, v in r.items() if not k.startswith("time/") and k != "wall_time"} for r in rows],
+            final["success_rate"], final["episodic_return"])
+
+
+def test_smoke_run_writes_every_output(smoke_run):
+    tmp_path, final = smoke_run
     for name in ("config.yaml", "metrics.csv", "final_eval.json", "training_curves.png", "actor.pt",
                  "test_episode.gif"):
         assert (tmp_path / name).exists(), name
@@ -105,13 +121,7 @@ def test_refresh_on_all_data_feeds_online_transitions_to_the_ensemble(tmp_path):
     assert sizes == {"warmup": 100, "all": 300}
 
 
-def test_the_same_seed_gives_the_same_metrics(tmp_path):
+def test_the_same_seed_gives_the_same_metrics(smoke_run, tmp_path):
     """Two runs of one seed on one machine: every logged number and the final evaluation agree (timings aside)."""
-    runs = []
-    for name in ("a", "b"):
-        out = tmp_path / name
-        final = load_pe_rlhf_recipe().main(["profile=smoke", "eval.video=false", "seed=3", "--out", str(out)])
-        rows = list(csv.DictReader(open(out / "metrics.csv")))
-        runs.append(([{k: v for k, v in r.items() if not k.startswith("time/") and k != "wall_time"} for r in rows],
-                     final["success_rate"], final["episodic_return"]))
-    assert runs[0] == runs[1]
+    again = load_pe_rlhf_recipe().main([*SMOKE_RUN, "--out", str(tmp_path)])
+    assert _logged(tmp_path, again) == _logged(*smoke_run)

@@ -8,7 +8,6 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-from pe_rlhf.baselines import main as baseline_main
 from pe_rlhf.durable import sha256_file
 from pe_rlhf.modules import make_actor, make_qvalue, q_ensemble_from_critics
 from pe_rlhf.objectives import PERLHFLoss
@@ -18,13 +17,6 @@ from pe_rlhf.training.value_expert import (critics_of_run, export_value_expert, 
                                            packaged_expert_path, parse_value_source)
 
 pytestmark = pytest.mark.filterwarnings("ignore:No target network updater")
-
-
-@pytest.fixture(scope="module")
-def sac_run(tmp_path_factory):
-    out = tmp_path_factory.mktemp("sac_rs")
-    baseline_main("sac_rs", ["profile=smoke", "--out", str(out)])
-    return out
 
 
 def critic_values(loss: PERLHFLoss, params, obs, act):
