@@ -35,7 +35,7 @@ import torch
 
 from pe_rlhf.training import builders
 from pe_rlhf.training.config import load_config, to_container
-from pe_rlhf.training.metrics_logger import MetricsLogger
+from pe_rlhf.runtime.metrics_logger import MetricsLogger
 from pe_rlhf.training.trainer import train
 from pe_rlhf.transforms import RealtimePacing
 

@@ -129,7 +129,7 @@ def run_ours(cfg, seed: int, sim: SimTimer) -> dict:
     from pe_rlhf.baselines.loop import BaselineLearner
     from pe_rlhf.runtime.run import Run
     from pe_rlhf.threads import torch_threads
-    from pe_rlhf.training.metrics_logger import MetricsLogger
+    from pe_rlhf.runtime.metrics_logger import MetricsLogger
 
     L, end = int(cfg.collector.learning_starts), int(cfg.collector.total_frames)
     cfg.seed = seed

@@ -46,7 +46,7 @@ def run_seed(seed: int, out: Path, overrides: list[str]) -> float:
 
 
 def training_numbers(run: Path, warmup_steps: int) -> dict:
-    from pe_rlhf.training.metrics_logger import read_metrics_csv
+    from pe_rlhf.runtime.metrics_logger import read_metrics_csv
 
     _, rows = read_metrics_csv(run / "metrics.csv")
     last = rows[-1]
@@ -73,7 +73,7 @@ def plot_takeover(runs: dict[int, Path], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from pe_rlhf.training.metrics_logger import read_metrics_csv
+    from pe_rlhf.runtime.metrics_logger import read_metrics_csv
 
     fig, ax = plt.subplots(figsize=(7, 3.5))
     for seed, run in runs.items():

@@ -28,7 +28,7 @@ from pe_rlhf.evaluation.evaluate import MEAN_STD_METRICS
 from pe_rlhf.training.builders import obs_dim
 from pe_rlhf.runtime.checkpoint import load_checkpoint
 from pe_rlhf.training.config import ConfigError
-from pe_rlhf.training.metrics_logger import read_metrics_csv
+from pe_rlhf.runtime.metrics_logger import read_metrics_csv
 
 pytestmark = [pytest.mark.usefixtures("one_thread_module"),
               pytest.mark.filterwarnings("ignore::FutureWarning"), pytest.mark.filterwarnings("ignore::UserWarning")]

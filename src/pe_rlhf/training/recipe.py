@@ -46,8 +46,8 @@ from pe_rlhf.training.config import (
     to_container,
 )
 from pe_rlhf.training.config_compose import PROXY_Q, RecipeSchema, store_recipe_configs
-from pe_rlhf.training.metrics_logger import MetricsLogger
-from pe_rlhf.training.plots import plot_learning_curves
+from pe_rlhf.runtime.metrics_logger import MetricsLogger
+from pe_rlhf.runtime.plots import plot_learning_curves
 from pe_rlhf.training.trainer import evaluate_reference, registered_policies, train
 
 # Hydra's own flags a recipe passes on to @hydra.main (an unknown flag is an error here, in one line).
