@@ -303,7 +303,7 @@ def update_candidates(cfg) -> dict:
 
     from pe_rlhf.baselines.algorithms import SACLearner
     from pe_rlhf.training.builders import obs_dim
-    from pe_rlhf.training.steps import update
+    from pe_rlhf.runtime.update import update
 
     dim = obs_dim(cfg)
     data = _random_transitions(min(3000, int(cfg.replay_buffer.size)), dim)

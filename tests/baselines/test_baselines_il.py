@@ -38,7 +38,7 @@ from pe_rlhf.modules import make_actor
 from pe_rlhf.training.builders import obs_dim
 from pe_rlhf.training.config import ConfigError
 from pe_rlhf.runtime.metrics_logger import read_metrics_csv
-from pe_rlhf.training.steps import update
+from pe_rlhf.runtime.update import update
 
 pytestmark = [pytest.mark.usefixtures("one_thread_module"),
               pytest.mark.filterwarnings("ignore::FutureWarning"), pytest.mark.filterwarnings("ignore::UserWarning")]

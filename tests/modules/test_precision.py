@@ -20,7 +20,7 @@ from torchrl.objectives import SACLoss, SoftUpdate
 
 from pe_rlhf.modules import make_actor, make_qvalue
 from pe_rlhf.modules.precision import Float32Linear, fp32_output_layer, update_precision
-from pe_rlhf.training.steps import update
+from pe_rlhf.runtime.update import update
 
 pytestmark = [pytest.mark.usefixtures("one_thread_module")]
 

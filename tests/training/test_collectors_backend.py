@@ -19,9 +19,10 @@ import torch
 from _scripts import load_pe_rlhf_recipe
 from torchrl.collectors import Collector
 
+from pe_rlhf.runtime.update import update
 from pe_rlhf.training import builders
 from pe_rlhf.training.config import ConfigError, load_config
-from pe_rlhf.training.steps import batch_metrics, ensemble_transitions, update
+from pe_rlhf.training.steps import batch_metrics, ensemble_transitions
 
 pytestmark = pytest.mark.usefixtures("one_thread_module")
 

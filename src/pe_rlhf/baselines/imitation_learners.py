@@ -50,7 +50,7 @@ from pe_rlhf.baselines.imitation import (
     make_discriminator,
 )
 from pe_rlhf.modules import make_actor
-from pe_rlhf.training.steps import update
+from pe_rlhf.runtime.update import update
 
 
 class GAILLearner(PPOLearner):

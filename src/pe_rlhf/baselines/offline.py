@@ -35,7 +35,7 @@ from pe_rlhf.modules import make_actor, make_qvalue
 from pe_rlhf.runtime.run import Learner, Run
 from pe_rlhf.training.builders import obs_dim
 from pe_rlhf.training.config import driving_config
-from pe_rlhf.training.steps import update
+from pe_rlhf.runtime.update import update
 
 
 class BCLearner:
