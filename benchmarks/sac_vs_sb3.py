@@ -157,7 +157,7 @@ def make_sb3(cfg, seed: int):
     from stable_baselines3 import SAC
 
     from pe_rlhf.envs import make_gym_env
-    from pe_rlhf.training.config import driving_config
+    from pe_rlhf.runtime.config import driving_config
 
     lc = cfg.loss
     return SAC("MlpPolicy", make_gym_env(driving_config(cfg)), learning_rate=float(cfg.optim.lr),
@@ -425,7 +425,7 @@ def main(argv: list[str] | None = None) -> dict:
     before, sim = machine_info(), SimTimer()
     with sim.patch():
         by_threads = {str(t): compare(args, t, sim) for t in args.threads}
-    from pe_rlhf.training.config import to_container
+    from pe_rlhf.runtime.config import to_container
 
     out = {"args": vars(args), "recipe_config": to_container(cfg), "machine_before": before,
            "machine_after": machine_info(), "threads": by_threads}

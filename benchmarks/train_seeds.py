@@ -157,7 +157,8 @@ def main() -> None:
 
     from pe_rlhf.envs import scene_seeds
     from pe_rlhf.evaluation import TorchRLPolicyAdapter, evaluate, make_policy
-    from pe_rlhf.training.config import driving_config, load_config
+    from pe_rlhf.runtime.config import driving_config
+    from pe_rlhf.training.config import load_config
     from pe_rlhf.training.trained_policy import load_actor
 
     torch.set_num_threads(1)

@@ -27,7 +27,7 @@ from pe_rlhf.evaluation import TorchRLPolicyAdapter
 from pe_rlhf.evaluation.evaluate import MEAN_STD_METRICS
 from pe_rlhf.training.builders import obs_dim
 from pe_rlhf.runtime.checkpoint import load_checkpoint
-from pe_rlhf.training.config import ConfigError
+from pe_rlhf.runtime.config_rules import ConfigError
 from pe_rlhf.runtime.metrics_logger import read_metrics_csv
 
 pytestmark = [pytest.mark.usefixtures("one_thread_module"),

@@ -57,7 +57,8 @@ def test_observation_appends_the_summary_and_keeps_the_rest():
 
 def test_config_field_is_validated_and_sizes_the_networks():
     from pe_rlhf.training import builders
-    from pe_rlhf.training.config import ConfigError, load_config
+    from pe_rlhf.runtime.config_rules import ConfigError
+    from pe_rlhf.training.config import load_config
 
     with pytest.raises(ValueError, match="lane_features"):
         DrivingConfig(lane_features="yes")

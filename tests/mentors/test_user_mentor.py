@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from pe_rlhf.training import builders
-from pe_rlhf.training.config import ConfigError, load_config
+from pe_rlhf.runtime.config_rules import ConfigError
+from pe_rlhf.training.config import load_config
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
 

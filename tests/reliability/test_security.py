@@ -59,7 +59,8 @@ def test_journal_refuses_a_malicious_batch(tmp_path):
 def test_trained_actor_file_is_refused(tmp_path):
     from _runs import TINY
 
-    from pe_rlhf.training.config import load_config, save_config
+    from pe_rlhf.runtime.config import save_config
+    from pe_rlhf.training.config import load_config
     from pe_rlhf.training.trained_policy import load_actor
 
     save_config(load_config(overrides=TINY), tmp_path / "config.yaml")

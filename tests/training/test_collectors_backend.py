@@ -21,7 +21,8 @@ from torchrl.collectors import Collector
 
 from pe_rlhf.runtime.update import update
 from pe_rlhf.training import builders
-from pe_rlhf.training.config import ConfigError, load_config
+from pe_rlhf.runtime.config_rules import ConfigError
+from pe_rlhf.training.config import load_config
 from pe_rlhf.training.steps import batch_metrics, ensemble_transitions
 
 pytestmark = pytest.mark.usefixtures("one_thread_module")

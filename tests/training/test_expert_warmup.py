@@ -15,7 +15,9 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from pe_rlhf.baselines import load_baseline_actor
 from pe_rlhf.baselines import main as baseline_main
 from pe_rlhf.training import builders
-from pe_rlhf.training.config import ConfigError, driving_config, load_config
+from pe_rlhf.runtime.config import driving_config
+from pe_rlhf.runtime.config_rules import ConfigError
+from pe_rlhf.training.config import load_config
 from pe_rlhf.training.trained_policy import load_run_actor, run_observation_size
 
 pytestmark = [pytest.mark.usefixtures("one_thread_module"),

@@ -8,7 +8,8 @@ from pathlib import Path
 from _scripts import load_script
 
 from pe_rlhf.training import builders
-from pe_rlhf.training.config import driving_config, load_config, method_name, to_container
+from pe_rlhf.runtime.config import driving_config, to_container
+from pe_rlhf.training.config import load_config, method_name
 from pe_rlhf.transforms import InterventionTransform
 
 RECIPE_DIR = Path(__file__).resolve().parents[2] / "recipes" / "haco"

@@ -10,7 +10,8 @@ from pathlib import Path
 from _scripts import load_script
 
 from pe_rlhf.training import builders
-from pe_rlhf.training.config import driving_config, load_config
+from pe_rlhf.runtime.config import driving_config
+from pe_rlhf.training.config import load_config
 from pe_rlhf.transforms import InterventionTransform, TrafficDisturbanceCost
 
 RECIPE_DIR = Path(__file__).resolve().parents[2] / "recipes" / "haim_drl"

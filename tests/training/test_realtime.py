@@ -20,7 +20,9 @@ from pe_rlhf.training.background_updates import (
     SyncUpdater,
     make_interaction_type_thread_local,
 )
-from pe_rlhf.training.config import ConfigError, load_config, save_config
+from pe_rlhf.runtime.config import save_config
+from pe_rlhf.runtime.config_rules import ConfigError
+from pe_rlhf.training.config import load_config
 from pe_rlhf.transforms import RealtimePacing
 
 FRAME_COLUMNS = ("time/frame_ms_mean", "time/frame_jitter_ms_p95", "time/frame_jitter_ms_max")

@@ -41,7 +41,7 @@ from pe_rlhf.baselines.loop import train_baseline
 from pe_rlhf.baselines.plots import plot_baseline_curves
 from pe_rlhf.evaluation import write_json
 from pe_rlhf.training import recipe
-from pe_rlhf.training.config import save_config, to_container
+from pe_rlhf.runtime.config import save_config, to_container
 from pe_rlhf.runtime.metrics_logger import CSV_NAME, MetricsLogger
 from pe_rlhf.training.recipe import RunOptions, report_final
 

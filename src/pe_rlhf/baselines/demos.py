@@ -21,7 +21,7 @@ from pathlib import Path
 from omegaconf import OmegaConf
 from tensordict import TensorDictBase
 
-from pe_rlhf.training.config import driving_config
+from pe_rlhf.runtime.config import driving_config
 
 DEMO_DIR = "demos"
 DEMO_KEYS = ("observation", "action", ("next", "observation"), ("next", "reward"), ("next", "cost"),

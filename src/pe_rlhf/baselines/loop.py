@@ -39,7 +39,7 @@ from pe_rlhf.runtime.checkpoint import STATE
 from pe_rlhf.runtime.run import Learner, Run
 from pe_rlhf.threads import FreeCores, torch_threads
 from pe_rlhf.training.builders import obs_dim
-from pe_rlhf.training.config import driving_config
+from pe_rlhf.runtime.config import driving_config
 
 
 def _buffer(size: int) -> TensorDictReplayBuffer:

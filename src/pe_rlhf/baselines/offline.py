@@ -34,7 +34,7 @@ from pe_rlhf.baselines.imitation import WeightedBCLoss
 from pe_rlhf.modules import make_actor, make_qvalue
 from pe_rlhf.runtime.run import Learner, Run
 from pe_rlhf.training.builders import obs_dim
-from pe_rlhf.training.config import driving_config
+from pe_rlhf.runtime.config import driving_config
 from pe_rlhf.runtime.update import update
 
 

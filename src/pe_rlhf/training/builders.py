@@ -69,7 +69,7 @@ def build_warmup_driver(cfg):
     if path is None:
         return None
     from pe_rlhf.evaluation import TorchRLPolicyAdapter
-    from pe_rlhf.training.config import ConfigError
+    from pe_rlhf.runtime.config_rules import ConfigError
     from pe_rlhf.training.trained_policy import load_run_actor, run_observation_size
 
     field = "collector.warmup_policy"
@@ -203,7 +203,7 @@ def make_worker_env(cfg, worker_index: int, num_workers: int, start_frames: int 
     ``start_frames`` (a resumed run's global frame count) sets the transform's step counter to this
     worker's share, so a resumed run does not repeat the warm-up.
     """
-    from pe_rlhf.training.config import driving_config
+    from pe_rlhf.runtime.config import driving_config
 
     env = build_train_env(cfg, driving_config(cfg), build_mentor(cfg, worker_index), ensemble, build_physics(cfg),
                           worker_index, num_workers)

@@ -15,7 +15,7 @@ from pe_rlhf.objectives import PERLHFLoss
 def obs_dim(cfg) -> int:
     """The observation size of ``cfg.env``'s world (the networks' input width)."""
     from pe_rlhf.envs.observation import observation_size
-    from pe_rlhf.training.config import driving_config
+    from pe_rlhf.runtime.config import driving_config
 
     world = driving_config(cfg)
     return observation_size(world.lidar_beams, world.lane_features)

@@ -7,7 +7,7 @@ composed config to :func:`hydra_task`, run through :func:`run_script`. Three fla
 Hydra sees the command line: ``--out DIR`` (the run folder; default ``runs/<method>-<time>``), ``--compare POLICY``
 and ``--resume DIR [key=value ...]`` (continue the run in DIR from its saved ``config.yaml``, which is composed over
 the schema without its profile). Hydra neither changes the working directory nor writes an output folder or log
-(:data:`~pe_rlhf.training.config_compose.HYDRA_SETTINGS`). ``main(argv)`` is the same command line as a function
+(:data:`~pe_rlhf.runtime.config_compose.HYDRA_SETTINGS`). ``main(argv)`` is the same command line as a function
 (tests, ``pe-rlhf sweep``). The baseline recipes (``recipes/sac_rs``, ...) use the same functions with their own
 composition and training (:mod:`pe_rlhf.baselines.cli`: the ``schema``, ``load`` and ``train`` arguments).
 
@@ -16,7 +16,7 @@ Outputs in the run folder: ``config.yaml`` (resolved, with the method's registry
 ``reference_<policy>.json`` (with ``--compare``).
 
 Errors, for every recipe (the baselines' ``train.py`` too): a bad config value, file or override (a
-:class:`~pe_rlhf.training.config.ConfigError`; the config is composed and checked before anything is built) or a
+:class:`~pe_rlhf.runtime.config_rules.ConfigError`; the config is composed and checked before anything is built) or a
 bad argument prints one line ``error: <message>`` to stderr and exits 2, without a traceback.
 ``PE_RLHF_DEBUG=1 python recipes/<method>/train.py ...`` shows the traceback instead (an environment
 variable, not a flag: the command line is the run's config overrides). Called as a function,
@@ -36,16 +36,11 @@ from omegaconf import DictConfig
 
 from pe_rlhf.evaluation import print_summary, write_json
 from pe_rlhf.errors import OneLineErrorParser, debug_requested, fail
-from pe_rlhf.training.config import (
-    ConfigError,
-    algorithm_name,
-    finish_config,
-    load_config,
-    method_name,
-    save_config,
-    to_container,
-)
-from pe_rlhf.training.config_compose import PROXY_Q, RecipeSchema, store_recipe_configs
+from pe_rlhf.runtime.config import save_config, to_container
+from pe_rlhf.runtime.config_rules import ConfigError
+from pe_rlhf.training.config import algorithm_name, finish_config, load_config, method_name
+from pe_rlhf.runtime.config_compose import RecipeSchema, store_recipe_configs
+from pe_rlhf.training.config_schema import PROXY_Q
 from pe_rlhf.runtime.metrics_logger import MetricsLogger
 from pe_rlhf.runtime.plots import plot_learning_curves
 from pe_rlhf.training.trainer import evaluate_reference, registered_policies, train

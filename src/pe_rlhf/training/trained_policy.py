@@ -22,7 +22,8 @@ def _baseline_method(run_dir: Path) -> str | None:
     PE-RLHF/HACO/HAIM-DRL run."""
     from omegaconf import OmegaConf
 
-    from pe_rlhf.training.config import ALGORITHM_KEY, PROXY_Q_ALGORITHMS
+    from pe_rlhf.runtime.config import ALGORITHM_KEY
+    from pe_rlhf.training.config import PROXY_Q_ALGORITHMS
 
     if not (run_dir / "config.yaml").exists():
         raise FileNotFoundError(f"{run_dir} is not a training run folder (no config.yaml)")
@@ -47,7 +48,7 @@ def _run_config(run_dir: Path):
 def run_world(run_dir: str | Path):
     """The :class:`~pe_rlhf.envs.config.DrivingConfig` the run in ``run_dir`` (either kind) trained in (its
     ``env`` group): its agent must be evaluated with the same observation (``lane_features``, ``lidar_beams``)."""
-    from pe_rlhf.training.config import driving_config
+    from pe_rlhf.runtime.config import driving_config
 
     return driving_config(_run_config(Path(run_dir)))
 

@@ -125,7 +125,7 @@ def evaluate_reference(policy_name: str, cfg, episodes: int | None = None) -> di
     import pe_rlhf.mentors.registry  # noqa: F401  (registers the mentors as evaluation policies)
     from pe_rlhf.envs import scene_seeds
     from pe_rlhf.evaluation import make_policy
-    from pe_rlhf.training.config import driving_config
+    from pe_rlhf.runtime.config import driving_config
 
     seeds = scene_seeds(str(cfg.eval.split))[: int(episodes or cfg.eval.episodes)]
     return evaluate(make_policy(policy_name, int(cfg.seed)), seeds, driving_config(cfg), progress=False,
@@ -185,7 +185,7 @@ class ProxyQLearner(Learner):
     on each batch, collected or replayed from the journal on ``--resume`` (:mod:`pe_rlhf.runtime.journal`)."""
 
     def __init__(self, cfg, logger, checkpoint_dir: Path | None, update_threads: int):
-        from pe_rlhf.training.config import driving_config
+        from pe_rlhf.runtime.config import driving_config
         from pe_rlhf.runtime.episode_journal import PendingEpisodesJournal
         from pe_rlhf.runtime.journal import BatchJournal
 

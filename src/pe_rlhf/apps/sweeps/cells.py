@@ -94,7 +94,7 @@ def expand(spec: SweepSpec) -> list[Cell]:
 def check_cell_configs(cells: list[Cell]) -> None:
     """Load every cell's recipe config (validated, as the recipe will): a bad override fails here, naming
     the cell and the field, before anything runs."""
-    from pe_rlhf.training.config import ConfigError
+    from pe_rlhf.runtime.config_rules import ConfigError
 
     for cell in cells:
         try:
