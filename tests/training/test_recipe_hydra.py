@@ -14,10 +14,10 @@ from omegaconf import OmegaConf
 
 from pe_rlhf.runtime.config import to_container
 from pe_rlhf.runtime.config_rules import ConfigError
+from pe_rlhf.runtime.recipe import RunOptions, parse_command_line
 from pe_rlhf.training.config import finish_config, load_config
 from pe_rlhf.runtime.config_compose import compose_file
 from pe_rlhf.training.config_schema import PROXY_Q
-from pe_rlhf.training.recipe import RunOptions, parse_command_line
 
 ROOT = Path(__file__).resolve().parents[2]
 ENV = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT / "src"), os.environ.get("PYTHONPATH", "")]),

@@ -111,27 +111,6 @@ def record_test_video(actor, cfg, env_config, path: Path, logger=None, step: int
     return {k: info[k] for k in ("path", "steps", "success", "crash_vehicle", "crash_object", "out_of_road")}
 
 
-def registered_policies() -> list[str]:
-    """Names :func:`evaluate_reference` accepts (the evaluation registry, mentors included)."""
-    import pe_rlhf.mentors.registry  # noqa: F401
-    from pe_rlhf.evaluation import POLICY_FACTORIES
-
-    return list(POLICY_FACTORIES)
-
-
-def evaluate_reference(policy_name: str, cfg, episodes: int | None = None) -> dict:
-    """A registered policy (e.g. ``idm-mobil``) on the same ``eval.split`` seeds as :func:`evaluate_actor`,
-    for the comparison table printed after training (``train.py --compare idm-mobil``)."""
-    import pe_rlhf.mentors.registry  # noqa: F401  (registers the mentors as evaluation policies)
-    from pe_rlhf.envs import scene_seeds
-    from pe_rlhf.evaluation import make_policy
-    from pe_rlhf.runtime.config import driving_config
-
-    seeds = scene_seeds(str(cfg.eval.split))[: int(episodes or cfg.eval.episodes)]
-    return evaluate(make_policy(policy_name, int(cfg.seed)), seeds, driving_config(cfg), progress=False,
-                    name=policy_name).to_dict()
-
-
 def pacing_log(pacing: RealtimePacing | None, frames: int) -> dict[str, float]:
     """Frame-time columns over the batch's last ``frames`` frames (none when the env is not paced)."""
     if pacing is None:

@@ -73,8 +73,8 @@ def _evaluate_only(policy: str, argv: list[str], directory: Path) -> None:
     ``eval.split`` / ``eval.episodes`` / ``env``), written as the cell's ``final_eval.json``."""
     from pe_rlhf.evaluation import write_json
     from pe_rlhf.runtime.config import save_config
+    from pe_rlhf.runtime.recipe import evaluate_reference
     from pe_rlhf.training.config import load_config
-    from pe_rlhf.training.trainer import evaluate_reference
 
     overrides = argv[: argv.index("--out")]
     cfg = load_config(None, overrides)
