@@ -19,9 +19,9 @@ import json
 import statistics
 import time
 
+from pe_rlhf.runtime.config import driving_config
 from pe_rlhf.threads import torch_threads
 from pe_rlhf.training import builders
-from pe_rlhf.runtime.config import driving_config
 from pe_rlhf.training.config import load_config
 
 

@@ -12,6 +12,7 @@ from _runs import train
 from pe_rlhf.objectives import PERLHFLoss
 from pe_rlhf.runtime.checkpoint import find_checkpoint, load_checkpoint
 from pe_rlhf.runtime.update import nonfinite_parameters, update
+from pe_rlhf.runtime.world import obs_dim
 from pe_rlhf.training import builders
 from pe_rlhf.training.config import load_config
 
@@ -27,7 +28,7 @@ def learner():
     from pe_rlhf.objectives.perlhf import make_transitions
 
     g = torch.Generator().manual_seed(0)
-    n, obs = 16, builders.obs_dim(cfg)
+    n, obs = 16, obs_dim(cfg)
     takeover = torch.rand(n, 1, generator=g) < 0.5
     sample = make_transitions(torch.randn(n, obs, generator=g), torch.randn(n, obs, generator=g),
                               torch.rand(n, 2, generator=g) * 2 - 1, torch.rand(n, 2, generator=g) * 2 - 1,

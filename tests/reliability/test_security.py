@@ -170,8 +170,8 @@ def test_the_network_guard_blocks_remote_hosts(no_network):
 def test_wandb_defaults_to_offline():
     import inspect
 
-    from pe_rlhf.training.config_schema import defaults
     from pe_rlhf.runtime.metrics_logger import MetricsLogger
+    from pe_rlhf.training.config_schema import defaults
 
     assert defaults()["logger"]["wandb"] is False and defaults()["logger"]["wandb_mode"] == "offline"
     assert inspect.signature(MetricsLogger).parameters["wandb_mode"].default == "offline"

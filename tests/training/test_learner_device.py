@@ -13,8 +13,8 @@ import pytest
 import torch
 from _scripts import load_script
 
-from pe_rlhf.training import builders
 from pe_rlhf.runtime.config_rules import ConfigError
+from pe_rlhf.training import builders
 from pe_rlhf.training.config import load_config
 
 _runs = load_script("tests/reliability/_runs.py", "reliability_runs")

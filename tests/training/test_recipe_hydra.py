@@ -13,10 +13,10 @@ import yaml
 from omegaconf import OmegaConf
 
 from pe_rlhf.runtime.config import to_container
+from pe_rlhf.runtime.config_compose import compose_file
 from pe_rlhf.runtime.config_rules import ConfigError
 from pe_rlhf.runtime.recipe import RunOptions, parse_command_line
 from pe_rlhf.training.config import finish_config, load_config
-from pe_rlhf.runtime.config_compose import compose_file
 from pe_rlhf.training.config_schema import PROXY_Q
 
 ROOT = Path(__file__).resolve().parents[2]

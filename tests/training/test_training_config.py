@@ -9,10 +9,10 @@ import pytest
 from omegaconf import OmegaConf
 
 from pe_rlhf.envs.config import DrivingConfig
-from pe_rlhf.training.builders import epsilon_select, warmup_selection
 from pe_rlhf.runtime.config import driving_config, save_config, to_container
 from pe_rlhf.runtime.config_rules import ConfigError
 from pe_rlhf.runtime.config_schema import OPEN_GROUPS
+from pe_rlhf.training.builders import epsilon_select, warmup_selection
 from pe_rlhf.training.config import (
     PROFILES,
     RULES,

@@ -44,7 +44,7 @@ def _recorded_steps(directory: Path) -> int:
 
 
 def _mentor(name: str, seed: int):
-    from pe_rlhf.training.builders import build_mentor
+    from pe_rlhf.runtime.world import build_mentor
 
     return build_mentor(OmegaConf.create({"mentor": {"name": name, "seed": seed, "kwargs": {}}}))
 

@@ -151,7 +151,7 @@ class InterventionLearner:
     def make_env(self, env_config):
         """The driving env with the mentor's takeovers (``InterventionTransform`` without physics/selector)."""
         from pe_rlhf.envs.torchrl_env import make_env
-        from pe_rlhf.training.builders import build_mentor
+        from pe_rlhf.runtime.world import build_mentor
         from pe_rlhf.transforms import InterventionTransform
 
         env = make_env(env_config)

@@ -41,8 +41,8 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
-from pe_rlhf.threads import torch_threads
 from pe_rlhf.runtime.update import update
+from pe_rlhf.threads import torch_threads
 
 
 def _ratio(updates_per_step: float | fractions.Fraction) -> fractions.Fraction:

@@ -24,6 +24,7 @@ from typing import Any, Optional
 from pe_rlhf.modules.precision import PRECISIONS
 from pe_rlhf.objectives.perlhf import FAILURE_TARGETS, GAP_ACTIONS
 from pe_rlhf.physics.safety import RECOVERIES
+from pe_rlhf.runtime.config_compose import RecipeSchema
 from pe_rlhf.runtime.config_rules import (
     SPLITS,
     Rule,
@@ -37,7 +38,6 @@ from pe_rlhf.runtime.config_rules import (
     rule_string,
     rule_target_entropy,
 )
-from pe_rlhf.runtime.config_compose import RecipeSchema
 from pe_rlhf.runtime.config_schema import LoggerConfig, knob, open_group
 from pe_rlhf.training.config_profiles import PROFILES
 

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import torch
 
+from pe_rlhf.runtime.world import obs_dim
 from pe_rlhf.training import model_builders as builders
 
 
@@ -55,7 +56,7 @@ def run_world(run_dir: str | Path):
 
 def run_observation_size(run_dir: str | Path) -> int:
     """The observation width the actor of the run in ``run_dir`` (either kind) reads."""
-    return builders.obs_dim(_run_config(Path(run_dir)))
+    return obs_dim(_run_config(Path(run_dir)))
 
 
 def load_run_actor(run_dir: str | Path):
@@ -70,7 +71,7 @@ def load_run_actor(run_dir: str | Path):
     if not (run_dir / "actor.pt").exists():
         raise FileNotFoundError(f"{run_dir}: the baseline run has no actor.pt (it has not finished)")
     cfg = _run_config(run_dir)
-    actor = make_actor(builders.obs_dim(cfg), hidden=tuple(cfg.loss.hidden))
+    actor = make_actor(obs_dim(cfg), hidden=tuple(cfg.loss.hidden))
     actor.load_state_dict(torch.load(run_dir / "actor.pt", weights_only=True, map_location="cpu"))
     return actor
 

@@ -53,10 +53,10 @@ from pe_rlhf.evaluation import TorchRLPolicyAdapter, evaluate
 from pe_rlhf.modules import EnsembleSchedule
 from pe_rlhf.objectives import fit_q_ensemble
 from pe_rlhf.runtime.checkpoint import capture_rng, restore_rng
+from pe_rlhf.runtime.collection_state import capture_collection, restore_collection
 from pe_rlhf.runtime.run import Learner, Run
 from pe_rlhf.threads import torch_threads
 from pe_rlhf.training import builders
-from pe_rlhf.runtime.collection_state import capture_collection, restore_collection
 from pe_rlhf.training.config import algorithm_name, method_name
 from pe_rlhf.training.steps import batch_metrics, ensemble_transitions, relabel_warmup
 from pe_rlhf.transforms import InterventionTransform, RealtimePacing

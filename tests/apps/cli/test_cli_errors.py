@@ -91,8 +91,8 @@ def test_every_recipe_script_reports_a_config_error_in_one_line(recipe, tmp_path
 def test_recipe_main_called_as_a_function_still_raises():
     """Tests, sweeps and notebooks call ``main(argv)``: they get the ConfigError, not an exit."""
     from pe_rlhf.baselines import main as baseline_main
-    from pe_rlhf.training import recipe
     from pe_rlhf.runtime.config_rules import ConfigError
+    from pe_rlhf.training import recipe
 
     with pytest.raises(ConfigError, match="optim.lr='abc'"):
         recipe.main(["optim.lr=abc"])
