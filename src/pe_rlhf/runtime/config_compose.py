@@ -9,15 +9,16 @@ A recipe's ``config.yaml`` is a Hydra primary config (``recipes/pe_rlhf/config.y
 
 A :class:`RecipeSchema` names a family's structured config and its profiles: PE-RLHF, HACO and HAIM-DRL share
 :data:`~pe_rlhf.training.config_schema.PROXY_Q`; each baseline has its own (``sac_lag_schema``, ...:
-:mod:`pe_rlhf.baselines.config`). Every function here takes the schema it composes; none knows a method. :func:`store_recipe_configs` registers a schema and its ``profile`` group in
-Hydra's ConfigStore, with the Hydra settings that keep a run where it was started: no change of working
-directory, no ``outputs/``, ``multirun/`` or ``.hydra/`` folder, no log file (``hydra.run.dir: .``,
-``hydra.sweep.dir: .``, ``hydra.output_subdir: null``, ``hydra/job_logging: none``). Every family's profiles are
-the one ``profile`` group (``profile=smoke`` on any recipe's command line), so the group holds the profiles of
-the schema composed last; each composition registers its own under the lock it composes under.
-:func:`compose_file` composes a recipe file (``@hydra.main`` composes the same in a recipe's ``train.py``);
-a file without a ``defaults`` list (a partial file, a run's saved ``config.yaml``) is composed over the schema
-as if it were the recipe's. Hydra's errors become a :class:`ConfigError` of one line that names the field.
+:mod:`pe_rlhf.baselines.config`). Every function here takes the schema it composes; none knows a method.
+:func:`store_recipe_configs` registers a schema and its ``profile`` group in Hydra's ConfigStore, with the Hydra
+settings that keep a run where it was started: no change of working directory, no ``outputs/``, ``multirun/`` or
+``.hydra/`` folder, no log file (``hydra.run.dir: .``, ``hydra.sweep.dir: .``, ``hydra.output_subdir: null``,
+``hydra/job_logging: none``). Every family's profiles are the one ``profile`` group (``profile=smoke`` on any
+recipe's command line), so the group holds the profiles of the schema composed last; each composition registers its
+own under the lock it composes under. :func:`compose_file` composes a recipe file (``@hydra.main`` composes the same
+in a recipe's ``train.py``); a file without a ``defaults`` list (a partial file, a run's saved ``config.yaml``) is
+composed over the schema as if it were the recipe's. Hydra's errors become a :class:`ConfigError` of one line that
+names the field.
 """
 
 from __future__ import annotations
