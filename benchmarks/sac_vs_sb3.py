@@ -127,9 +127,9 @@ def run_ours(cfg, seed: int, sim: SimTimer) -> dict:
     """The recipe's loop (:class:`~pe_rlhf.runtime.run.Run` over :class:`BaselineLearner`), timed from frame L
     to L + steps."""
     from pe_rlhf.baselines.loop import BaselineLearner
+    from pe_rlhf.runtime.metrics_logger import MetricsLogger
     from pe_rlhf.runtime.run import Run
     from pe_rlhf.threads import torch_threads
-    from pe_rlhf.training.metrics_logger import MetricsLogger
 
     L, end = int(cfg.collector.learning_starts), int(cfg.collector.total_frames)
     cfg.seed = seed
@@ -157,7 +157,7 @@ def make_sb3(cfg, seed: int):
     from stable_baselines3 import SAC
 
     from pe_rlhf.envs import make_gym_env
-    from pe_rlhf.training.config import driving_config
+    from pe_rlhf.runtime.config import driving_config
 
     lc = cfg.loss
     return SAC("MlpPolicy", make_gym_env(driving_config(cfg)), learning_rate=float(cfg.optim.lr),
@@ -302,8 +302,8 @@ def update_candidates(cfg) -> dict:
     from stable_baselines3.common.logger import configure
 
     from pe_rlhf.baselines.algorithms import SACLearner
-    from pe_rlhf.training.builders import obs_dim
-    from pe_rlhf.training.steps import update
+    from pe_rlhf.runtime.update import update
+    from pe_rlhf.runtime.world import obs_dim
 
     dim = obs_dim(cfg)
     data = _random_transitions(min(3000, int(cfg.replay_buffer.size)), dim)
@@ -425,7 +425,7 @@ def main(argv: list[str] | None = None) -> dict:
     before, sim = machine_info(), SimTimer()
     with sim.patch():
         by_threads = {str(t): compare(args, t, sim) for t in args.threads}
-    from pe_rlhf.training.config import to_container
+    from pe_rlhf.runtime.config import to_container
 
     out = {"args": vars(args), "recipe_config": to_container(cfg), "machine_before": before,
            "machine_after": machine_info(), "threads": by_threads}

@@ -38,9 +38,11 @@ from tqdm import tqdm
 
 from pe_rlhf.envs import make_gym_env
 from pe_rlhf.physics import IDMMobilPolicy, PhysicsConfig
-from pe_rlhf.training.builders import build_mentor, build_physics, build_q_ensemble, epsilon_select
 from pe_rlhf.runtime.checkpoint import find_checkpoint, load_checkpoint
-from pe_rlhf.training.config import driving_config, load_config
+from pe_rlhf.runtime.config import driving_config
+from pe_rlhf.runtime.world import build_mentor
+from pe_rlhf.training.builders import build_physics, build_q_ensemble, epsilon_select
+from pe_rlhf.training.config import load_config
 
 
 def parse_scenes(text: str) -> list[int]:

@@ -46,7 +46,7 @@ def run_seed(seed: int, out: Path, overrides: list[str]) -> float:
 
 
 def training_numbers(run: Path, warmup_steps: int) -> dict:
-    from pe_rlhf.training.metrics_logger import read_metrics_csv
+    from pe_rlhf.runtime.metrics_logger import read_metrics_csv
 
     _, rows = read_metrics_csv(run / "metrics.csv")
     last = rows[-1]
@@ -73,7 +73,7 @@ def plot_takeover(runs: dict[int, Path], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from pe_rlhf.training.metrics_logger import read_metrics_csv
+    from pe_rlhf.runtime.metrics_logger import read_metrics_csv
 
     fig, ax = plt.subplots(figsize=(7, 3.5))
     for seed, run in runs.items():
@@ -157,7 +157,8 @@ def main() -> None:
 
     from pe_rlhf.envs import scene_seeds
     from pe_rlhf.evaluation import TorchRLPolicyAdapter, evaluate, make_policy
-    from pe_rlhf.training.config import driving_config, load_config
+    from pe_rlhf.runtime.config import driving_config
+    from pe_rlhf.training.config import load_config
     from pe_rlhf.training.trained_policy import load_actor
 
     torch.set_num_threads(1)

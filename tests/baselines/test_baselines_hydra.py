@@ -15,7 +15,9 @@ from omegaconf import OmegaConf
 
 from pe_rlhf.baselines import METHODS, default_config, load_baseline_config
 from pe_rlhf.baselines.config import rules
-from pe_rlhf.training.config import ConfigError, load_config, save_config, to_container
+from pe_rlhf.runtime.config import save_config, to_container
+from pe_rlhf.runtime.config_rules import ConfigError
+from pe_rlhf.training.config import load_config
 
 ROOT = Path(__file__).resolve().parents[2]
 ENV = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT / "src"), os.environ.get("PYTHONPATH", "")]),

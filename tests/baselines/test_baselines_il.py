@@ -35,10 +35,10 @@ from pe_rlhf.evaluation import TorchRLPolicyAdapter
 from pe_rlhf.evaluation.evaluate import MEAN_STD_METRICS
 from pe_rlhf.mentors.recording import dataset_info
 from pe_rlhf.modules import make_actor
-from pe_rlhf.training.builders import obs_dim
-from pe_rlhf.training.config import ConfigError
-from pe_rlhf.training.metrics_logger import read_metrics_csv
-from pe_rlhf.training.steps import update
+from pe_rlhf.runtime.config_rules import ConfigError
+from pe_rlhf.runtime.metrics_logger import read_metrics_csv
+from pe_rlhf.runtime.update import update
+from pe_rlhf.runtime.world import obs_dim
 
 pytestmark = [pytest.mark.usefixtures("one_thread_module"),
               pytest.mark.filterwarnings("ignore::FutureWarning"), pytest.mark.filterwarnings("ignore::UserWarning")]

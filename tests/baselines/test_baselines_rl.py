@@ -25,10 +25,10 @@ from pe_rlhf.baselines import METHODS, EpisodeTracker, default_config, load_base
 from pe_rlhf.baselines.loop import compact_copy
 from pe_rlhf.evaluation import TorchRLPolicyAdapter
 from pe_rlhf.evaluation.evaluate import MEAN_STD_METRICS
-from pe_rlhf.training.builders import obs_dim
 from pe_rlhf.runtime.checkpoint import load_checkpoint
-from pe_rlhf.training.config import ConfigError
-from pe_rlhf.training.metrics_logger import read_metrics_csv
+from pe_rlhf.runtime.config_rules import ConfigError
+from pe_rlhf.runtime.metrics_logger import read_metrics_csv
+from pe_rlhf.runtime.world import obs_dim
 
 pytestmark = [pytest.mark.usefixtures("one_thread_module"),
               pytest.mark.filterwarnings("ignore::FutureWarning"), pytest.mark.filterwarnings("ignore::UserWarning")]

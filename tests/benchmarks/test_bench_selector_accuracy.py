@@ -11,8 +11,9 @@ from _scripts import load_pe_rlhf_recipe, load_script
 
 from pe_rlhf.envs import make_gym_env
 from pe_rlhf.physics import IDMMobilPolicy, PhysicsConfig
-from pe_rlhf.training.builders import build_mentor, build_physics
-from pe_rlhf.training.config import driving_config
+from pe_rlhf.runtime.config import driving_config
+from pe_rlhf.runtime.world import build_mentor
+from pe_rlhf.training.builders import build_physics
 
 
 def test_selector_accuracy_on_a_smoke_run(tmp_path):

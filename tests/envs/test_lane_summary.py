@@ -9,6 +9,7 @@ from _scenes import CAR_LENGTH, add_car, add_obstacle, long_road_env, place_ego
 from pe_rlhf.envs import DrivingConfig, make_gym_env
 from pe_rlhf.envs.lane_summary import LANE_FEATURES, LANE_RANGE, lane_features
 from pe_rlhf.envs.observation import V_MAX, observation_size
+from pe_rlhf.runtime.world import obs_dim
 
 LEFT, OWN, RIGHT = slice(2, 8), slice(8, 14), slice(14, 20)
 
@@ -56,15 +57,16 @@ def test_observation_appends_the_summary_and_keeps_the_rest():
 
 
 def test_config_field_is_validated_and_sizes_the_networks():
+    from pe_rlhf.runtime.config_rules import ConfigError
     from pe_rlhf.training import builders
-    from pe_rlhf.training.config import ConfigError, load_config
+    from pe_rlhf.training.config import load_config
 
     with pytest.raises(ValueError, match="lane_features"):
         DrivingConfig(lane_features="yes")
     with pytest.raises(ConfigError, match="lane_features"):
         load_config(None, ["env.lane_features=maybe"])
-    assert builders.obs_dim(load_config(None, ["env.lane_features=false"])) == 250
-    assert builders.obs_dim(load_config(None, [])) == 270  # the recipes' default world has the lane summary
+    assert obs_dim(load_config(None, ["env.lane_features=false"])) == 250
+    assert obs_dim(load_config(None, [])) == 270  # the recipes' default world has the lane summary
 
 
 def test_evaluate_checkpoint_uses_the_runs_world(tmp_path):

@@ -6,8 +6,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pe_rlhf.training import builders
-from pe_rlhf.training.config import ConfigError, load_config
+from pe_rlhf.runtime.config_rules import ConfigError
+from pe_rlhf.runtime.world import build_mentor
+from pe_rlhf.training.config import load_config
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
 
@@ -23,7 +24,7 @@ def test_import_path_mentor_takes_over_by_its_own_rule(examples_on_path):
     from pe_rlhf.envs import make_gym_env
 
     cfg = load_config(overrides=["profile=smoke", "mentor.name=cautious_mentor:CautiousMentor"])
-    mentor = builders.build_mentor(cfg)
+    mentor = build_mentor(cfg)
     assert type(mentor).__name__ == "CautiousMentor"
     env = make_gym_env({"split": None, "horizon": 50})
     env.reset(options={"scene_seed": 1000})
@@ -40,7 +41,7 @@ def test_import_path_mentor_takes_over_by_its_own_rule(examples_on_path):
 def test_a_class_that_is_not_a_mentor_is_refused(examples_on_path):
     cfg = load_config(overrides=["profile=smoke", "mentor.name=cautious_mentor:IDMMobilPolicy"])
     with pytest.raises(TypeError, match="not a pe_rlhf Mentor"):
-        builders.build_mentor(cfg)
+        build_mentor(cfg)
 
 
 def test_malformed_import_path_fails_at_config_time():

@@ -13,7 +13,9 @@ import torch
 from _runs import train
 from tensordict import TensorDict
 
-from pe_rlhf.training.config import ConfigError, load_config
+from pe_rlhf.runtime.config_rules import ConfigError
+from pe_rlhf.runtime.world import obs_dim
+from pe_rlhf.training.config import load_config
 
 pytestmark = [pytest.mark.usefixtures("one_thread"), pytest.mark.filterwarnings("ignore::FutureWarning")]
 
@@ -46,14 +48,14 @@ def test_invalid_config_fails_at_start_naming_field_value_and_allowed(tmp_path, 
 def test_observation_size_follows_the_env_config():
     """Networks are built for the configured world's observation (10 + lidar beams), not a fixed 250."""
     from pe_rlhf.envs.torchrl_env import make_env
+    from pe_rlhf.runtime.config import driving_config
     from pe_rlhf.training import builders
-    from pe_rlhf.training.config import driving_config
 
     # the packaged value expert reads the default 270-float observation: a fitted ensemble follows any world
     cfg = load_config(overrides=["profile=smoke", "env.lidar_beams=60", "env.lane_features=false",
                                  "selector.value=warmup"])
     env = make_env(driving_config(cfg))
-    assert builders.obs_dim(cfg) == env.observation_spec["observation"].shape[-1] == 70
+    assert obs_dim(cfg) == env.observation_spec["observation"].shape[-1] == 70
     td = builders.build_actor(cfg)(env.reset())
     assert td["action"].shape == (2,)
     assert builders.build_q_ensemble(cfg).values(td["observation"].unsqueeze(0), td["action"].unsqueeze(0)).shape \

@@ -17,7 +17,7 @@ import pytest
 from _compare import assert_same
 from _runs import checkpoint_contents, start_training, train
 
-from pe_rlhf.training.journal import BatchJournal
+from pe_rlhf.runtime.journal import BatchJournal
 
 pytestmark = [pytest.mark.usefixtures("one_thread"), pytest.mark.filterwarnings("ignore::UserWarning")]
 

@@ -14,9 +14,11 @@ from _runs import train
 
 from pe_rlhf.envs import make_gym_env
 from pe_rlhf.mentors.human import HumanMentor
-from pe_rlhf.training import builders
 from pe_rlhf.runtime.checkpoint import load_checkpoint
-from pe_rlhf.training.config import ConfigError, load_config
+from pe_rlhf.runtime.config_rules import ConfigError
+from pe_rlhf.runtime.world import build_mentor
+from pe_rlhf.training import builders
+from pe_rlhf.training.config import load_config
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 AGENT = np.array([0.1, 0.3], dtype=np.float32)
@@ -102,7 +104,7 @@ def test_gamepad_unplugged(env):
 
 def test_on_disconnect_from_the_recipe_config():
     cfg = load_config(overrides=["mentor.name=human", "mentor.kwargs.on_disconnect=pause", "mentor.kwargs.fps=0"])
-    mentor = builders.build_mentor(cfg)
+    mentor = build_mentor(cfg)
     assert isinstance(mentor, HumanMentor) and mentor.input.pause_on_disconnect
     with pytest.raises(ConfigError, match=r"mentor.kwargs.on_disconnect='leave' is invalid: allowed: \['agent', "
                                           r"'pause'\]"):

@@ -10,8 +10,10 @@ import torch
 from _runs import train
 
 from pe_rlhf.objectives import PERLHFLoss
-from pe_rlhf.training import builders, steps
 from pe_rlhf.runtime.checkpoint import find_checkpoint, load_checkpoint
+from pe_rlhf.runtime.update import nonfinite_parameters, update
+from pe_rlhf.runtime.world import obs_dim
+from pe_rlhf.training import builders
 from pe_rlhf.training.config import load_config
 
 pytestmark = [pytest.mark.usefixtures("one_thread"), pytest.mark.filterwarnings("ignore::UserWarning")]
@@ -26,7 +28,7 @@ def learner():
     from pe_rlhf.objectives.perlhf import make_transitions
 
     g = torch.Generator().manual_seed(0)
-    n, obs = 16, builders.obs_dim(cfg)
+    n, obs = 16, obs_dim(cfg)
     takeover = torch.rand(n, 1, generator=g) < 0.5
     sample = make_transitions(torch.randn(n, obs, generator=g), torch.randn(n, obs, generator=g),
                               torch.rand(n, 2, generator=g) * 2 - 1, torch.rand(n, 2, generator=g) * 2 - 1,
@@ -54,7 +56,7 @@ def test_non_finite_loss_term_is_named_and_nothing_changes(learner, monkeypatch)
     monkeypatch.setattr(PERLHFLoss, "forward", forward)
     before = params(loss)
     with pytest.raises(FloatingPointError, match="loss_intervention_qvalue is inf"):
-        steps.update(loss, optimizers, soft_update, sample, max_grad_norm=10.0)
+        update(loss, optimizers, soft_update, sample, max_grad_norm=10.0)
     assert unchanged(before, loss)
 
 
@@ -65,7 +67,7 @@ def test_non_finite_gradient_names_the_optimizer_and_no_step_is_taken(learner, m
     weight.register_hook(lambda g: torch.full_like(g, float("nan")))
     before = params(loss)
     with pytest.raises(FloatingPointError, match="gradient of optimizer 'actor' has norm nan"):
-        steps.update(loss, optimizers, soft_update, sample, max_grad_norm=max_grad_norm)
+        update(loss, optimizers, soft_update, sample, max_grad_norm=max_grad_norm)
     assert unchanged(before, loss)  # no optimizer stepped, targets untouched
 
 
@@ -81,8 +83,8 @@ def test_non_finite_parameter_after_a_step_is_named(learner, monkeypatch):
 
     monkeypatch.setattr(opt, "step", step)
     with pytest.raises(FloatingPointError, match=r"parameters \['log_alpha'\] became non-finite"):
-        steps.update(loss, optimizers, soft_update, sample, max_grad_norm=10.0)
-    assert steps.nonfinite_parameters(loss) == ["log_alpha"]
+        update(loss, optimizers, soft_update, sample, max_grad_norm=10.0)
+    assert nonfinite_parameters(loss) == ["log_alpha"]
 
 
 def test_trainer_saves_a_checkpoint_then_stops_naming_the_term(tmp_path, monkeypatch):

@@ -44,7 +44,7 @@ def test_the_payload_really_runs_code_when_loaded_unsafely(tmp_path):
 
 
 def test_journal_refuses_a_malicious_batch(tmp_path):
-    from pe_rlhf.training.journal import BatchJournal
+    from pe_rlhf.runtime.journal import BatchJournal
 
     journal = BatchJournal(tmp_path / "journal")
     journal.write(TensorDict({"x": torch.zeros(4, 1)}, batch_size=[4]), start=0)
@@ -59,7 +59,8 @@ def test_journal_refuses_a_malicious_batch(tmp_path):
 def test_trained_actor_file_is_refused(tmp_path):
     from _runs import TINY
 
-    from pe_rlhf.training.config import load_config, save_config
+    from pe_rlhf.runtime.config import save_config
+    from pe_rlhf.training.config import load_config
     from pe_rlhf.training.trained_policy import load_actor
 
     save_config(load_config(overrides=TINY), tmp_path / "config.yaml")
@@ -169,8 +170,8 @@ def test_the_network_guard_blocks_remote_hosts(no_network):
 def test_wandb_defaults_to_offline():
     import inspect
 
+    from pe_rlhf.runtime.metrics_logger import MetricsLogger
     from pe_rlhf.training.config_schema import defaults
-    from pe_rlhf.training.metrics_logger import MetricsLogger
 
     assert defaults()["logger"]["wandb"] is False and defaults()["logger"]["wandb_mode"] == "offline"
     assert inspect.signature(MetricsLogger).parameters["wandb_mode"].default == "offline"
@@ -180,7 +181,7 @@ def test_wandb_offline_run_stays_on_this_machine(tmp_path, monkeypatch, no_netwo
     """A run with ``logger.wandb=true`` and the default mode writes its files locally under the
     network guard (wandb's own service process talks to this one over loopback only)."""
     pytest.importorskip("wandb")
-    from pe_rlhf.training.metrics_logger import MetricsLogger
+    from pe_rlhf.runtime.metrics_logger import MetricsLogger
 
     monkeypatch.setenv("WANDB_SILENT", "true")
     with MetricsLogger(tmp_path, wandb=True, config={"lr": 1e-4}) as logger:

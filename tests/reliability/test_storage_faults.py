@@ -24,7 +24,7 @@ from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from pe_rlhf import durable
 from pe_rlhf.runtime import checkpoint as ck
 from pe_rlhf.runtime.checkpoint import CheckpointError, find_checkpoint, list_checkpoints, load_checkpoint
-from pe_rlhf.training.journal import BatchJournal
+from pe_rlhf.runtime.journal import BatchJournal
 
 pytestmark = [pytest.mark.usefixtures("one_thread"), pytest.mark.filterwarnings("ignore::UserWarning")]
 

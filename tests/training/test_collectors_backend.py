@@ -19,9 +19,12 @@ import torch
 from _scripts import load_pe_rlhf_recipe
 from torchrl.collectors import Collector
 
+from pe_rlhf.runtime.config_rules import ConfigError
+from pe_rlhf.runtime.update import update
+from pe_rlhf.runtime.world import obs_dim
 from pe_rlhf.training import builders
-from pe_rlhf.training.config import ConfigError, load_config
-from pe_rlhf.training.steps import batch_metrics, ensemble_transitions, update
+from pe_rlhf.training.config import load_config
+from pe_rlhf.training.steps import batch_metrics, ensemble_transitions
 
 pytestmark = pytest.mark.usefixtures("one_thread_module")
 
@@ -125,7 +128,7 @@ def test_ray_kwargs_and_ensemble_push_without_ray(monkeypatch):
     remote = types.SimpleNamespace(cascade_execute=types.SimpleNamespace(remote=worker.cascade_execute))
     monkeypatch.setitem(sys.modules, "ray", types.SimpleNamespace(get=lambda futures: futures))
     builders.push_ensemble_weights(types.SimpleNamespace(remote_collectors=[remote]), ensemble)
-    obs, act = torch.randn(3, builders.obs_dim(cfg)), torch.rand(3, 2) * 2 - 1
+    obs, act = torch.randn(3, obs_dim(cfg)), torch.rand(3, 2) * 2 - 1
     torch.testing.assert_close(worker_ensemble.values(obs, act), ensemble.values(obs, act))
     worker.shutdown()
 

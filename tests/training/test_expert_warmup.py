@@ -13,8 +13,11 @@ from tensordict import TensorDict
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from pe_rlhf.baselines import load_baseline_actor
+from pe_rlhf.runtime.config import driving_config
+from pe_rlhf.runtime.config_rules import ConfigError
+from pe_rlhf.runtime.world import build_mentor, obs_dim
 from pe_rlhf.training import builders
-from pe_rlhf.training.config import ConfigError, driving_config, load_config
+from pe_rlhf.training.config import load_config
 from pe_rlhf.training.trained_policy import load_run_actor, run_observation_size
 
 pytestmark = [pytest.mark.usefixtures("one_thread_module"),
@@ -28,9 +31,9 @@ def _cfg(*overrides):
 def test_a_baseline_run_loads_as_the_warmup_driver(sac_run):
     cfg = _cfg(f"collector.warmup_policy={sac_run}")
     driver = builders.build_warmup_driver(cfg)
-    assert run_observation_size(sac_run) == builders.obs_dim(cfg)
+    assert run_observation_size(sac_run) == obs_dim(cfg)
     actor = load_baseline_actor(sac_run)
-    obs = np.random.default_rng(0).uniform(0, 1, builders.obs_dim(cfg)).astype(np.float32)
+    obs = np.random.default_rng(0).uniform(0, 1, obs_dim(cfg)).astype(np.float32)
     with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
         mode = actor(TensorDict({"observation": torch.as_tensor(obs)}, []))["action"].numpy()
     action = driver(obs, None)
@@ -53,7 +56,7 @@ def test_a_baseline_run_folder_without_the_method_record_still_loads(sac_run, tm
     del config["algorithm"]
     (old / "config.yaml").write_text(yaml.safe_dump(config))
     for run in (sac_run, old):
-        assert run_observation_size(run) == builders.obs_dim(_cfg())
+        assert run_observation_size(run) == obs_dim(_cfg())
         for name, p in load_run_actor(run).state_dict().items():
             assert torch.equal(p, load_baseline_actor(sac_run).state_dict()[name])
 
@@ -65,7 +68,7 @@ def test_the_expert_drives_the_warmup_of_a_recipe_run(sac_run, tmp_path):
     cfg = load_config(tmp_path / "config.yaml", apply_profile=False)
     assert cfg.collector.warmup_policy == str(sac_run)  # recorded with the run
     # the warm-up's transitions, as the ensemble saw them, hold the expert's actions
-    env = builders.build_train_env(cfg, driving_config(cfg), builders.build_mentor(cfg), None, None)
+    env = builders.build_train_env(cfg, driving_config(cfg), build_mentor(cfg), None, None)
     transform = env.transform[-1]
     assert transform.warmup_driver is not None
     def agent(td):

@@ -7,8 +7,10 @@ from pathlib import Path
 
 from _scripts import load_script
 
+from pe_rlhf.runtime.config import driving_config, to_container
+from pe_rlhf.runtime.world import build_mentor
 from pe_rlhf.training import builders
-from pe_rlhf.training.config import driving_config, load_config, method_name, to_container
+from pe_rlhf.training.config import load_config, method_name
 from pe_rlhf.transforms import InterventionTransform
 
 RECIPE_DIR = Path(__file__).resolve().parents[2] / "recipes" / "haco"
@@ -21,7 +23,7 @@ def test_the_recipe_is_the_sweeps_haco_and_builds_no_selector():
     sweep = load_config(None, ["profile=cpu", "seed=3", *builtin_methods()["haco"].overrides])
     assert to_container(recipe) == to_container(sweep)
     assert method_name(recipe) == "HACO"
-    env = builders.build_train_env(recipe, driving_config(recipe), builders.build_mentor(recipe),
+    env = builders.build_train_env(recipe, driving_config(recipe), build_mentor(recipe),
                                    builders.build_q_ensemble(recipe), builders.build_physics(recipe))
     intervention = builders.find_transform(env, InterventionTransform)
     assert intervention.selector is None and intervention.physics is None

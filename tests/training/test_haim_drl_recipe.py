@@ -9,8 +9,10 @@ from pathlib import Path
 
 from _scripts import load_script
 
+from pe_rlhf.runtime.config import driving_config
+from pe_rlhf.runtime.world import build_mentor
 from pe_rlhf.training import builders
-from pe_rlhf.training.config import driving_config, load_config
+from pe_rlhf.training.config import load_config
 from pe_rlhf.transforms import InterventionTransform, TrafficDisturbanceCost
 
 RECIPE_DIR = Path(__file__).resolve().parents[2] / "recipes" / "haim_drl"
@@ -35,7 +37,7 @@ def test_builders_add_the_transform_after_the_takeover_and_a_disturbance_critic(
     assert loss.has_disturbance_critic and loss.disturbance_weight == 1.0
     assert "disturbance_qvalue" in builders.build_optimizers(cfg, loss)
     pe_rlhf = load_config(overrides=["profile=smoke"])
-    env = builders.build_train_env(pe_rlhf, driving_config(pe_rlhf), builders.build_mentor(pe_rlhf),
+    env = builders.build_train_env(pe_rlhf, driving_config(pe_rlhf), build_mentor(pe_rlhf),
                                    builders.build_q_ensemble(pe_rlhf), builders.build_physics(pe_rlhf))
     assert not any(isinstance(t, TrafficDisturbanceCost) for t in env.transform)
     env.close()

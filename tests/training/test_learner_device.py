@@ -13,8 +13,9 @@ import pytest
 import torch
 from _scripts import load_script
 
+from pe_rlhf.runtime.config_rules import ConfigError
 from pe_rlhf.training import builders
-from pe_rlhf.training.config import ConfigError, load_config
+from pe_rlhf.training.config import load_config
 
 _runs = load_script("tests/reliability/_runs.py", "reliability_runs")
 TIMING, train = _runs.TIMING, _runs.train

@@ -14,13 +14,16 @@ from tensordict import TensorDict
 from _scripts import load_pe_rlhf_recipe
 
 from pe_rlhf.objectives.perlhf import make_transitions
+from pe_rlhf.runtime.config import save_config
+from pe_rlhf.runtime.config_rules import ConfigError
+from pe_rlhf.runtime.world import obs_dim
 from pe_rlhf.training import builders
 from pe_rlhf.training.background_updates import (
     BackgroundUpdater,
     SyncUpdater,
     make_interaction_type_thread_local,
 )
-from pe_rlhf.training.config import ConfigError, load_config, save_config
+from pe_rlhf.training.config import load_config
 from pe_rlhf.transforms import RealtimePacing
 
 FRAME_COLUMNS = ("time/frame_ms_mean", "time/frame_jitter_ms_p95", "time/frame_jitter_ms_max")
@@ -88,8 +91,8 @@ def _learner_parts(rows: int = 64):
     g = torch.Generator().manual_seed(0)
     agent = torch.rand(rows, 2, generator=g) * 2 - 1
     intervention = torch.rand(rows, 1, generator=g) < 0.3
-    replay.extend(make_transitions(torch.rand(rows, builders.obs_dim(cfg), generator=g),
-                                   torch.rand(rows, builders.obs_dim(cfg), generator=g), agent,
+    replay.extend(make_transitions(torch.rand(rows, obs_dim(cfg), generator=g),
+                                   torch.rand(rows, obs_dim(cfg), generator=g), agent,
                                    torch.where(intervention, -agent, agent), intervention, intervention,
                                    torch.zeros(rows, 1, dtype=torch.bool)))
     return actor, loss, soft_update, optimizers, replay
@@ -114,7 +117,7 @@ def test_background_updater_keeps_the_update_to_data_ratio(one_thread):
         time.sleep(0.1)
         assert updater.updates_done == 5  # never ahead of the data
         assert set(updater.latest_losses()) >= {"loss_qvalue", "loss_actor"}
-        width = builders.obs_dim(load_config(overrides=["profile=smoke"]))
+        width = obs_dim(load_config(overrides=["profile=smoke"]))
         acted = updater.policy(TensorDict({"observation": torch.zeros(width)}))
         assert acted.get("action").shape == (2,)
         updater.notify_frames(27)  # 37 frames: floor(18.5) updates

@@ -12,9 +12,12 @@ import pytest
 import yaml
 from omegaconf import OmegaConf
 
-from pe_rlhf.training.config import ConfigError, finish_config, load_config, to_container
-from pe_rlhf.training.config_compose import compose_file
-from pe_rlhf.training.recipe import RunOptions, parse_command_line
+from pe_rlhf.runtime.config import to_container
+from pe_rlhf.runtime.config_compose import compose_file
+from pe_rlhf.runtime.config_rules import ConfigError
+from pe_rlhf.runtime.recipe import RunOptions, parse_command_line
+from pe_rlhf.training.config import finish_config, load_config
+from pe_rlhf.training.config_schema import PROXY_Q
 
 ROOT = Path(__file__).resolve().parents[2]
 ENV = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT / "src"), os.environ.get("PYTHONPATH", "")]),
@@ -68,7 +71,7 @@ def test_hydra_errors_become_one_line_config_errors():
         load_config(overrides=["optim.lr=1,2"])
     assert "\n" not in str(info.value)
     with pytest.raises(ConfigError, match=r"unknown config key 'optim\.lrr' \(command-line override\)"):
-        compose_file(ROOT / "recipes" / "pe_rlhf" / "config.yaml", ["optim.lrr=1"], {}, recipe=True)
+        compose_file(ROOT / "recipes" / "pe_rlhf" / "config.yaml", ["optim.lrr=1"], {}, recipe=True, schema=PROXY_Q)
 
 
 def test_an_unknown_key_in_a_recipe_file_is_named_before_hydra_composes(tmp_path):
@@ -86,7 +89,8 @@ def test_recipe_flags_are_taken_off_and_the_rest_is_hydras():
 
 
 def test_resume_composes_the_saved_config_over_the_schema_without_its_profile(tmp_path):
-    from pe_rlhf.training.config import algorithm_name, save_config
+    from pe_rlhf.runtime.config import save_config
+    from pe_rlhf.training.config import algorithm_name
 
     cfg = load_config(overrides=["profile=smoke", "replay_buffer.batch_size=16"])
     path = save_config(cfg, tmp_path / "config.yaml", algorithm_name(cfg))
@@ -99,11 +103,11 @@ def test_after_composition_a_human_mentor_gets_its_defaults_unless_given():
     """What ``hydra_task`` does with the config ``@hydra.main`` composed: the overrides Hydra recorded say what
     was given."""
     recipe = ROOT / "recipes" / "pe_rlhf" / "config.yaml"
-    composed = compose_file(recipe, ["mentor.name=human"], {}, recipe=True)
+    composed = compose_file(recipe, ["mentor.name=human"], {}, recipe=True, schema=PROXY_Q)
     finished = finish_config(composed, ["mentor.name=human"])
     assert (finished.collector.realtime_hz, finished.optim.async_updates) == (10.0, True)
     given = ["mentor.name=human", "collector.realtime_hz=0"]
-    finished = finish_config(compose_file(recipe, given, {}, recipe=True), given)
+    finished = finish_config(compose_file(recipe, given, {}, recipe=True, schema=PROXY_Q), given)
     assert (finished.collector.realtime_hz, finished.optim.async_updates) == (0, True)
     with pytest.raises(ConfigError, match=r"^optim\.lr=-1 is invalid"):
-        finish_config(compose_file(recipe, ["optim.lr=-1"], {}, recipe=True), ["optim.lr=-1"])
+        finish_config(compose_file(recipe, ["optim.lr=-1"], {}, recipe=True, schema=PROXY_Q), ["optim.lr=-1"])

@@ -9,20 +9,18 @@ import pytest
 from omegaconf import OmegaConf
 
 from pe_rlhf.envs.config import DrivingConfig
+from pe_rlhf.runtime.config import driving_config, save_config, to_container
+from pe_rlhf.runtime.config_rules import ConfigError
+from pe_rlhf.runtime.config_schema import OPEN_GROUPS
 from pe_rlhf.training.builders import epsilon_select, warmup_selection
 from pe_rlhf.training.config import (
-    OPEN_GROUPS,
     PROFILES,
     RULES,
-    ConfigError,
     algorithm_name,
     default_config_path,
-    driving_config,
     load_config,
     method_name,
     physics_config,
-    save_config,
-    to_container,
     validate_config,
 )
 from pe_rlhf.training.config_schema import RecipeConfig, defaults

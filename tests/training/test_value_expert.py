@@ -11,8 +11,9 @@ from tensordict import TensorDict
 from pe_rlhf.durable import sha256_file
 from pe_rlhf.modules import make_actor, make_qvalue, q_ensemble_from_critics
 from pe_rlhf.objectives import PERLHFLoss
+from pe_rlhf.runtime.config_rules import ConfigError
 from pe_rlhf.training import builders
-from pe_rlhf.training.config import ConfigError, load_config
+from pe_rlhf.training.config import load_config
 from pe_rlhf.training.value_expert import (critics_of_run, export_value_expert, load_value_expert,
                                            packaged_expert_path, parse_value_source)
 

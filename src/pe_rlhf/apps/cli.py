@@ -4,7 +4,7 @@ Subcommands (:data:`SUBCOMMANDS`): ``evaluate``, ``demo record|info|export|impor
 itself runs from ``recipes/<method>/train.py``. Examples in :data:`EPILOG` (``pe-rlhf --help``).
 
 Errors: a bad value (a config override, a seed range, a run folder, a sweep or compare spec: a
-``ValueError`` the subcommand checks, a :class:`~pe_rlhf.training.config.ConfigError`) or a bad argument
+``ValueError`` the subcommand checks, a :class:`~pe_rlhf.runtime.config_rules.ConfigError`) or a bad argument
 prints one line ``error: <message>`` to stderr and exits 2, without a traceback; ``pe-rlhf --debug
 COMMAND ...`` (also accepted after the command) or ``PE_RLHF_DEBUG=1`` shows the traceback instead.
 """
@@ -319,7 +319,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _is_config_error(error: BaseException) -> bool:
     # A ConfigError exists only once its module is imported; importing it here would cost seconds.
-    config = sys.modules.get("pe_rlhf.training.config")
+    config = sys.modules.get("pe_rlhf.runtime.config_rules")
     return config is not None and isinstance(error, config.ConfigError)
 
 

@@ -14,7 +14,7 @@
 Each learner has ``actor`` (the collecting policy), ``modules`` / ``optimizers`` / ``replay_buffers`` (what
 a checkpoint saves: every learned number, ``lambda`` and the KL coefficient included), ``collector_kwargs``
 and ``learn(batch, frames, tracker) -> {column: number}``.
-Gradient steps go through :func:`pe_rlhf.training.steps.update` (per-optimizer clipping, non-finite
+Gradient steps go through :func:`pe_rlhf.runtime.update.update` (per-optimizer clipping, non-finite
 checks naming the culprit).
 """
 
@@ -36,7 +36,7 @@ from pe_rlhf.baselines.episodes import EpisodeTracker
 from pe_rlhf.modules import make_actor, make_qvalue
 from pe_rlhf.objectives import CPOLoss, LagrangeMultiplier, PPOLagLoss, SACLagLoss
 from pe_rlhf.objectives.cpo import base_normal
-from pe_rlhf.training.steps import update
+from pe_rlhf.runtime.update import update
 
 # What a learner keeps of a collected step (the env's info keys are for the tracker only).
 TRANSITION_KEYS = ("observation", "action", ("next", "observation"), ("next", "reward"), ("next", "cost"),

@@ -4,7 +4,7 @@
     python recipes/<method>/train.py --resume DIR [group.key=value ...]   # continue from its last checkpoint
     python recipes/<method>/train.py profile=smoke --cfg job              # print the composed config, run nothing
 
-A recipe's ``train.py`` is the proxy-Q recipes' layout (:mod:`pe_rlhf.training.recipe`): a ``@hydra.main``
+A recipe's ``train.py`` is every recipe's layout (:mod:`pe_rlhf.runtime.recipe`): a ``@hydra.main``
 function over its ``config.yaml`` (a Hydra config over the method's structured config,
 :mod:`pe_rlhf.baselines.config`) that hands the composed config to :func:`hydra_task`, run through
 :func:`run_script`; the same flags beside Hydra's ``key=value`` overrides and the same ``--cfg job``; Hydra neither
@@ -40,10 +40,10 @@ from pe_rlhf.baselines.config import (
 from pe_rlhf.baselines.loop import train_baseline
 from pe_rlhf.baselines.plots import plot_baseline_curves
 from pe_rlhf.evaluation import write_json
-from pe_rlhf.training import recipe
-from pe_rlhf.training.config import save_config, to_container
-from pe_rlhf.training.metrics_logger import CSV_NAME, MetricsLogger
-from pe_rlhf.training.recipe import RunOptions, report_final
+from pe_rlhf.runtime import recipe
+from pe_rlhf.runtime.config import save_config, to_container
+from pe_rlhf.runtime.metrics_logger import CSV_NAME, MetricsLogger
+from pe_rlhf.runtime.recipe import RunOptions, report_final
 
 FINAL_EVAL = "final_eval.json"
 
@@ -70,8 +70,8 @@ def main(method: str, argv: list[str] | None = None, *, config_path: str | Path 
 
 
 def run_script(task: Callable[[], object], method: str, config_path: str | Path) -> None:
-    """A recipe script's ``__main__`` (:func:`pe_rlhf.training.recipe.run_script` with ``method``'s schema)."""
-    recipe.run_script(task, config_path, schema=recipe_schema(method),
+    """A recipe script's ``__main__`` (:func:`pe_rlhf.runtime.recipe.run_script` with ``method``'s schema)."""
+    recipe.run_script(task, schema=recipe_schema(method),
                       load=functools.partial(load_run_config, method, config_path=config_path),
                       train=functools.partial(run, method))
 

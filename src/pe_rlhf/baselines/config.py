@@ -2,7 +2,7 @@
 
 ``load_baseline_config(method, path, overrides)`` composes, each layer on top of the one before, as
 :func:`pe_rlhf.training.config.load_config` does for PE-RLHF (the same composition, override grammar and
-errors: :mod:`pe_rlhf.training.config_compose`):
+errors: :mod:`pe_rlhf.runtime.config_compose`):
 
 1. the method's structured config (:data:`SCHEMAS`: :mod:`~pe_rlhf.baselines.config_schema` and
    :mod:`~pe_rlhf.baselines.imitation_schema`; ``<method>_schema`` in Hydra's ConfigStore: the one place for each
@@ -14,7 +14,7 @@ errors: :mod:`pe_rlhf.training.config_compose`):
 
 then :func:`validate_baseline_config`. Every group is closed (an unknown key fails naming it) except ``env`` (any
 :class:`~pe_rlhf.envs.config.DrivingConfig` field) and ``mentor.kwargs``. Errors are
-:class:`~pe_rlhf.training.config.ConfigError` naming the dotted field, the value and what is allowed.
+:class:`~pe_rlhf.runtime.config_rules.ConfigError` naming the dotted field, the value and what is allowed.
 
 Methods and families: :data:`METHODS` (:mod:`pe_rlhf.baselines.config_schema`, which also says why the cost
 limit 1 never binds here).
@@ -45,7 +45,7 @@ from pe_rlhf.baselines.config_schema import (
     SacRsConfig,
 )
 from pe_rlhf.baselines.imitation_schema import BCConfig, CQLConfig, GailConfig, HGDaggerConfig, IWRConfig
-from pe_rlhf.training.config import (
+from pe_rlhf.runtime.config import (
     DEFAULTS_LIST_KEY,
     RECIPES_ENV_VAR,
     check_env,
@@ -53,8 +53,8 @@ from pe_rlhf.training.config import (
     check_recorded_algorithm,
     read_config_file,
 )
-from pe_rlhf.training.config_compose import RecipeSchema, check_overrides, compose_file, leaf_keys
-from pe_rlhf.training.config_rules import ConfigError, invalid_value
+from pe_rlhf.runtime.config_compose import RecipeSchema, check_overrides, compose_file, leaf_keys
+from pe_rlhf.runtime.config_rules import ConfigError, invalid_value
 
 
 # Each method's structured config (pe_rlhf.baselines.config_schema, pe_rlhf.baselines.imitation_schema).
@@ -123,7 +123,7 @@ def load_baseline_config(method: str, path: str | Path | None = None, overrides:
                          apply_profile: bool = True, validate: bool = True) -> DictConfig:
     """Schema <- recipe file <- profile <- overrides, composed by Hydra and validated (module docstring).
 
-    ``apply_profile=False``: for a config written by :func:`~pe_rlhf.training.config.save_config` (a run's
+    ``apply_profile=False``: for a config written by :func:`~pe_rlhf.runtime.config.save_config` (a run's
     ``config.yaml``), whose values already include its profile and overrides (the profile is only recorded).
     """
     schema = recipe_schema(method)

@@ -3,8 +3,8 @@ baseline shares and :data:`METHODS`: the one place for every field's default, ty
 
 One dataclass per method (``SacLagConfig``, ...; the imitation methods' in :mod:`pe_rlhf.baselines.imitation_schema`,
 all of them in :data:`pe_rlhf.baselines.config.SCHEMAS`) built from one dataclass per group; each field is a
-:func:`~pe_rlhf.training.config_schema.knob` with its default, its declared type and its rule
-(:mod:`pe_rlhf.training.config_rules`: what is allowed, in the words of the error). Values are the paper's appendix
+:func:`~pe_rlhf.runtime.config_schema.knob` with its default, its declared type and its rule
+(:mod:`pe_rlhf.runtime.config_rules`: what is allowed, in the words of the error). Values are the paper's appendix
 tables (SAC/SAC-Lag, PPO/PPO-Lag, CPO) where they give one ("paper" beside a field); every other value says where it
 comes from. Hydra composes a recipe's ``config.yaml`` over its method's schema (:mod:`pe_rlhf.baselines.config`).
 
@@ -26,7 +26,7 @@ from typing import Any, Optional
 
 from pe_rlhf.baselines.config_profiles import PROFILE_NAMES
 from pe_rlhf.modules.precision import PRECISIONS
-from pe_rlhf.training.config_rules import (
+from pe_rlhf.runtime.config_rules import (
     SPLITS,
     rule_bool,
     rule_choice,
@@ -36,7 +36,7 @@ from pe_rlhf.training.config_rules import (
     rule_optional,
     rule_target_entropy,
 )
-from pe_rlhf.training.config_schema import LoggerConfig, knob, open_group
+from pe_rlhf.runtime.config_schema import LoggerConfig, knob, open_group
 
 
 @dataclass(frozen=True)

@@ -21,7 +21,7 @@ from pathlib import Path
 from omegaconf import OmegaConf
 from tensordict import TensorDictBase
 
-from pe_rlhf.training.config import driving_config
+from pe_rlhf.runtime.config import driving_config
 
 DEMO_DIR = "demos"
 DEMO_KEYS = ("observation", "action", ("next", "observation"), ("next", "reward"), ("next", "cost"),
@@ -44,7 +44,7 @@ def _recorded_steps(directory: Path) -> int:
 
 
 def _mentor(name: str, seed: int):
-    from pe_rlhf.training.builders import build_mentor
+    from pe_rlhf.runtime.world import build_mentor
 
     return build_mentor(OmegaConf.create({"mentor": {"name": name, "seed": seed, "kwargs": {}}}))
 

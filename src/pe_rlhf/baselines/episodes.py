@@ -96,7 +96,7 @@ class EpisodeTracker:
 
 
 def batch_log(tracker: EpisodeTracker, episodes: BatchEpisodes) -> dict[str, float]:
-    """The training columns of one iteration (names follow :mod:`pe_rlhf.training.plots`): the mean return
+    """The training columns of one iteration (names follow :mod:`pe_rlhf.runtime.plots`): the mean return
     and cost of the episodes that ended in the batch (absent when none did), the run's totals."""
     log = {"train/safety_violations_total": tracker.safety_violations,
            "train/success_rate_total": tracker.success_rate,

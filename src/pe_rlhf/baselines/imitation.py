@@ -25,7 +25,7 @@ from torchrl.modules import MLP
 from torchrl.objectives import BCLoss, GAILLoss
 
 from pe_rlhf.baselines.algorithms import _NoTargets
-from pe_rlhf.training.steps import update
+from pe_rlhf.runtime.update import update
 
 # A dataset row of the human-in-the-loop learners: the state, the label, whether the mentor drove.
 DATASET_KEYS = ("observation", "action", "intervention")
@@ -119,7 +119,7 @@ def iwr_weights(data: TensorDictBase) -> torch.Tensor:
 def fit_epochs(loss, optimizers: dict, data: TensorDictBase, epochs: int, batch_size: int,
                max_grad_norm: float | None, weights: torch.Tensor | None = None) -> list[dict[str, float]]:
     """``epochs`` shuffled passes over ``data`` (flat) in minibatches of ``batch_size`` (the last one of a pass
-    may be smaller), one :func:`~pe_rlhf.training.steps.update` each; ``weights`` ``(N,)`` go to the
+    may be smaller), one :func:`~pe_rlhf.runtime.update.update` each; ``weights`` ``(N,)`` go to the
     loss as ``weight``. Returns each update's scalars."""
     if weights is not None:
         data = data.clone(False)

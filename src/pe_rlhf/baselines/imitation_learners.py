@@ -50,7 +50,7 @@ from pe_rlhf.baselines.imitation import (
     make_discriminator,
 )
 from pe_rlhf.modules import make_actor
-from pe_rlhf.training.steps import update
+from pe_rlhf.runtime.update import update
 
 
 class GAILLearner(PPOLearner):
@@ -151,7 +151,7 @@ class InterventionLearner:
     def make_env(self, env_config):
         """The driving env with the mentor's takeovers (``InterventionTransform`` without physics/selector)."""
         from pe_rlhf.envs.torchrl_env import make_env
-        from pe_rlhf.training.builders import build_mentor
+        from pe_rlhf.runtime.world import build_mentor
         from pe_rlhf.transforms import InterventionTransform
 
         env = make_env(env_config)

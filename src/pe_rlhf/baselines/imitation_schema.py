@@ -29,7 +29,7 @@ from pe_rlhf.baselines.config_schema import (
     PpoLossConfig,
     PpoOptimConfig,
 )
-from pe_rlhf.training.config_rules import (
+from pe_rlhf.runtime.config_rules import (
     SPLITS,
     rule_choice,
     rule_hidden,
@@ -40,7 +40,7 @@ from pe_rlhf.training.config_rules import (
     rule_string,
     rule_target_entropy,
 )
-from pe_rlhf.training.config_schema import LoggerConfig, knob, open_group
+from pe_rlhf.runtime.config_schema import LoggerConfig, knob, open_group
 
 
 def _demo_mentor(v) -> str | None:

@@ -36,10 +36,10 @@ from pe_rlhf.baselines.config import algorithm_name, method_of
 from pe_rlhf.baselines.episodes import EpisodeTracker, batch_log
 from pe_rlhf.envs.torchrl_env import make_env
 from pe_rlhf.runtime.checkpoint import STATE
+from pe_rlhf.runtime.config import driving_config
 from pe_rlhf.runtime.run import Learner, Run
+from pe_rlhf.runtime.world import obs_dim
 from pe_rlhf.threads import FreeCores, torch_threads
-from pe_rlhf.training.builders import obs_dim
-from pe_rlhf.training.config import driving_config
 
 
 def _buffer(size: int) -> TensorDictReplayBuffer:

@@ -1,9 +1,9 @@
-"""A baseline run's learning curves from its ``metrics.csv`` (column names of :mod:`pe_rlhf.training.plots`).
+"""A baseline run's learning curves from its ``metrics.csv`` (column names of :mod:`pe_rlhf.runtime.plots`).
 
 ``learning_curves.png``: training episode return and cost (the cost limit dashed), cumulative safety
 violations, training success rate, ``lambda`` (or CPO's constraint violation ``c = J_c - limit``; the
 imitation baselines: takeover rate, takeover data usage, the mentor's share of the data, GAIL's mean
-``D(s, a)`` on the policy's and the mentor's steps) and the losses; ``testing_curves.png`` (:mod:`pe_rlhf.training.plots`' test panel) when periodic evaluations
+``D(s, a)`` on the policy's and the mentor's steps) and the losses; ``testing_curves.png`` (:mod:`pe_rlhf.runtime.plots`' test panel) when periodic evaluations
 were logged.
 """
 
@@ -17,8 +17,8 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
-from pe_rlhf.training.metrics_logger import read_metrics_csv
-from pe_rlhf.training.plots import (
+from pe_rlhf.runtime.metrics_logger import read_metrics_csv
+from pe_rlhf.runtime.plots import (
     EVAL_PREFIX,
     LOSS_PREFIX,
     TESTING_PANEL,

@@ -7,7 +7,7 @@ On disk (``directory/``)::
                                "optimizers": {name: state_dict}}); plain tensors/ints/floats/
                                strings/lists/tuples/dicts only, loaded with ``weights_only=True``
         state.json             the caller's JSON state (counters, mentor, schedule, config, the collection in
-                               progress: :mod:`pe_rlhf.training.collection_state`)
+                               progress: :mod:`pe_rlhf.runtime.collection_state`)
         rng.pt                 torch CPU (+ CUDA) generator states as uint8 tensors, numpy's
                                global MT19937 state and Python ``random``'s state as lists of ints
                                (``weights_only=True`` as well)

@@ -2,7 +2,7 @@
 
 Both pay for collected frames with updates at a fixed update-to-data ratio: after
 ``notify_frames(n)`` calls totalling ``F`` frames, at most ``floor(updates_per_step * F)``
-updates have run (:func:`pe_rlhf.training.steps.update` on ``replay.sample()``), so the learner
+updates have run (:func:`pe_rlhf.runtime.update.update` on ``replay.sample()``), so the learner
 never runs ahead of the data. The trainer drives either through the same calls::
 
     with updater:                                # start(); on exit stop(): owed updates finish
@@ -41,8 +41,8 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
+from pe_rlhf.runtime.update import update
 from pe_rlhf.threads import torch_threads
-from pe_rlhf.training.steps import update
 
 
 def _ratio(updates_per_step: float | fractions.Fraction) -> fractions.Fraction:

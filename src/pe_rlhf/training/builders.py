@@ -28,7 +28,6 @@ the workers at :func:`sync_policy`.
 from __future__ import annotations
 
 import functools
-import importlib
 import math
 
 import torch
@@ -38,20 +37,21 @@ from torchrl.envs.utils import ExplorationType
 from torchrl.objectives import SoftUpdate
 
 from pe_rlhf.envs.torchrl_env import make_env
-from pe_rlhf.mentors import Mentor, make_mentor
+from pe_rlhf.mentors import Mentor
 from pe_rlhf.modules import QEnsemble
 from pe_rlhf.objectives import PERLHFLoss
 from pe_rlhf.physics import IDMMobilPolicy, SafetyForecastConfig, SafetyForecastValue
+from pe_rlhf.runtime.world import build_mentor, obs_dim
+from pe_rlhf.threads import thread_budget
+from pe_rlhf.training.model_builders import build_actor, build_loss  # noqa: F401 (re-exported)
+from pe_rlhf.training.takeover_replay import TakeoverBalancedReplayBuffer
+from pe_rlhf.training.value_expert import load_value_expert, parse_value_source
 from pe_rlhf.transforms import (
     HybridActionSelector,
     InterventionTransform,
     RealtimePacing,
     TrafficDisturbanceCost,
 )
-from pe_rlhf.threads import thread_budget
-from pe_rlhf.training.model_builders import build_actor, build_loss, obs_dim  # noqa: F401 (re-exported)
-from pe_rlhf.training.takeover_replay import TakeoverBalancedReplayBuffer
-from pe_rlhf.training.value_expert import load_value_expert, parse_value_source
 
 OBS_DIM = 250  # the default world's observation (240 lidar beams); obs_dim(cfg) follows env.lidar_beams and env.lane_features
 # A worker's Q-ensemble seen from its collector, in TorchRL's attribute-path notation (cascade_execute);
@@ -69,7 +69,7 @@ def build_warmup_driver(cfg):
     if path is None:
         return None
     from pe_rlhf.evaluation import TorchRLPolicyAdapter
-    from pe_rlhf.training.config import ConfigError
+    from pe_rlhf.runtime.config_rules import ConfigError
     from pe_rlhf.training.trained_policy import load_run_actor, run_observation_size
 
     field = "collector.warmup_policy"
@@ -82,24 +82,6 @@ def build_warmup_driver(cfg):
         raise ConfigError(f"{field}={path!r}: its actor reads {width}-float observations, this run's env gives "
                           f"{obs_dim(cfg)} (env.lane_features / env.lidar_beams differ)", field)
     return TorchRLPolicyAdapter(actor)
-
-
-def build_mentor(cfg, worker_index: int = 0) -> Mentor:
-    """A mentor by preset name (seeded ``mentor.seed + worker_index``), or a user's class given as
-    ``package.module:Name``."""
-    name = str(cfg.mentor.name)
-    if ":" in name:
-        module_name, _, attr = name.partition(":")
-        mentor = getattr(importlib.import_module(module_name), attr)()
-        if not isinstance(mentor, Mentor):
-            raise TypeError(f"mentor.name={name!r} built a {type(mentor).__name__}, not a pe_rlhf Mentor")
-        return mentor
-    kwargs = dict(cfg.mentor.get("kwargs") or {})
-    if name == "human" and float(cfg.collector.realtime_hz) > 0:
-        # RealtimePacing holds the step rate; the window's own frame limiter at twice that rate never
-        # waits between steps (two clocks would fight) but still throttles the redraws while paused.
-        kwargs.setdefault("fps", 2.0 * float(cfg.collector.realtime_hz))
-    return make_mentor(name, int(cfg.mentor.seed) + int(worker_index), **kwargs)
 
 
 def build_physics(cfg) -> IDMMobilPolicy | None:
@@ -203,7 +185,7 @@ def make_worker_env(cfg, worker_index: int, num_workers: int, start_frames: int 
     ``start_frames`` (a resumed run's global frame count) sets the transform's step counter to this
     worker's share, so a resumed run does not repeat the warm-up.
     """
-    from pe_rlhf.training.config import driving_config
+    from pe_rlhf.runtime.config import driving_config
 
     env = build_train_env(cfg, driving_config(cfg), build_mentor(cfg, worker_index), ensemble, build_physics(cfg),
                           worker_index, num_workers)

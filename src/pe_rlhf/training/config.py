@@ -1,7 +1,7 @@
 """The proxy-Q recipes' configuration: compose a recipe's ``config.yaml`` with Hydra, validate every field.
 
 ``load_config(path, overrides)`` composes, each layer on top of the one before (Hydra's defaults list, see
-:mod:`pe_rlhf.training.config_compose`):
+:mod:`pe_rlhf.runtime.config_compose`):
 
 1. the structured config :class:`~pe_rlhf.training.config_schema.RecipeConfig` (the paper's values: the one
    place for each field's default, type and rule),
@@ -12,56 +12,36 @@
 
 then :func:`validate_config`. Every group is closed: an unknown key fails naming it. Two groups are open by
 design and checked by name instead: ``env`` (any :class:`~pe_rlhf.envs.config.DrivingConfig` field) and
-``mentor.kwargs`` (arguments to ``make_mentor``). Every error is a :class:`ConfigError` (a ``ValueError``) that
-names the dotted field, the value and what is allowed.
+``mentor.kwargs`` (arguments to ``make_mentor``): :mod:`pe_rlhf.runtime.config`, as for every recipe. Every error is a
+:class:`~pe_rlhf.runtime.config_rules.ConfigError` (a ``ValueError``) that names the dotted field, the value and
+what is allowed.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import os
-import re
 from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
-from pe_rlhf.envs.config import DrivingConfig
-from pe_rlhf.training.config_compose import (
-    check_key,
-    check_overrides,
-    compose_file,
-    leaf_keys,
-    merge_values,
-    override_key,
+from pe_rlhf.runtime.config import (
+    DEFAULTS_LIST_KEY,
+    RECIPES_ENV_VAR,
+    check_env,
+    check_mentor_kwargs,
+    check_recorded_algorithm,
+    read_config_file,
 )
+from pe_rlhf.runtime.config_compose import check_overrides, compose_file, leaf_keys, override_key
+from pe_rlhf.runtime.config_rules import ConfigError, invalid_value
+from pe_rlhf.runtime.config_schema import OPEN_GROUPS
 from pe_rlhf.training.config_profiles import PROFILES
-from pe_rlhf.training.config_rules import (
-    BACKENDS,
-    SPLITS,
-    WANDB_MODES,
-    ConfigError,
-    check_human_kwargs,
-    invalid_value,
-    rule_bool,
-    rule_choice,
-    rule_hidden,
-    rule_int,
-    rule_number,
-    rule_optional,
-    rule_string,
-    rule_target_entropy,
-)
-from pe_rlhf.training.config_schema import OPEN_GROUPS, RULES, default
+from pe_rlhf.training.config_schema import PROXY_Q, RULES, default
 
-RECIPES_ENV_VAR = "PE_RLHF_RECIPES"
 RECIPE_CONFIG = Path("pe_rlhf") / "config.yaml"  # relative to the recipes directory
-# A run's saved config.yaml records the run's method by its registry name (pe_rlhf.algorithms.ALGORITHMS) under
-# this top-level key; the loaders read it apart from the config values and check it against them.
-ALGORITHM_KEY = "algorithm"
 PROXY_Q_ALGORITHMS = ("pe-rlhf", "haco", "haim-drl")  # this recipe's methods, by registry name
-DEFAULTS_LIST_KEY = "defaults"  # a Hydra primary config's defaults list
 
 # A person drives at a steady frame rate while the learner runs beside acting (see
 # pe_rlhf.transforms.RealtimePacing, pe_rlhf.training.background_updates); load_config applies these
@@ -89,19 +69,6 @@ def default_config_path() -> Path | None:
     return None
 
 
-def parse_overrides(overrides: Iterable[str]) -> list[tuple[str, str]]:
-    """``key=value`` strings as ``(key, value)`` pairs (the baselines' loader; values in YAML syntax)."""
-    if isinstance(overrides, str):  # a lone "a=b" would otherwise be iterated character by character
-        overrides = [overrides]
-    parsed = []
-    for item in overrides:
-        if not isinstance(item, str) or "=" not in item or not item.split("=", 1)[0].strip():
-            raise ConfigError(f"override {item!r} is not of the form key=value (e.g. optim.lr=3e-4)")
-        key, value = item.split("=", 1)
-        parsed.append((key.strip(), value))
-    return parsed
-
-
 def load_config(path: str | Path | None = None, overrides: Iterable[str] = (), *,
                 apply_profile: bool = True, validate: bool = True) -> DictConfig:
     """Schema <- recipe file <- profile <- overrides, composed by Hydra and validated (see the module docstring).
@@ -111,18 +78,19 @@ def load_config(path: str | Path | None = None, overrides: Iterable[str] = (), *
     ``selector.variance_threshold=null``). ``apply_profile=False`` skips step 3 (the profile is only recorded):
     for a config written by :func:`save_config`, whose values already include its profile and overrides.
     """
-    overrides = check_overrides(overrides)
+    overrides = check_overrides(overrides, PROXY_Q.profiles)
     path = Path(path) if path is not None else default_config_path()
     recorded = None  # the method a run's saved config records (read_config_file)
     if path is None:
-        cfg = compose_file(Path("<schema>"), overrides, {}, recipe=False, apply_profile=apply_profile)
+        cfg = compose_file(Path("<schema>"), overrides, {}, recipe=False, apply_profile=apply_profile,
+                           schema=PROXY_Q)
     else:
         if not path.is_file():
             raise ConfigError(f"config file {str(path)!r} not found")
         values, recorded = read_config_file(path)
         recipe = DEFAULTS_LIST_KEY in values and apply_profile  # a Hydra primary config, not a run's saved one
         values = {k: v for k, v in values.items() if k != DEFAULTS_LIST_KEY}
-        cfg = compose_file(path, overrides, values, recipe=recipe, apply_profile=apply_profile)
+        cfg = compose_file(path, overrides, values, recipe=recipe, apply_profile=apply_profile, schema=PROXY_Q)
     cfg = finish_config(cfg, overrides, apply_human_defaults=apply_profile, validate=validate)
     if validate:
         check_recorded_algorithm(recorded, algorithm_name(cfg))
@@ -141,25 +109,6 @@ def finish_config(cfg: DictConfig, overrides: Iterable[str] = (), *, apply_human
     if validate:
         validate_config(cfg)
     return cfg
-
-
-def read_config_file(path: str | Path) -> tuple[dict[str, Any], str | None]:
-    """A config file's values, and apart from them the registry name a run recorded under :data:`ALGORITHM_KEY`
-    (None: a recipe's config, or a run folder written before runs recorded it)."""
-    values = OmegaConf.to_container(OmegaConf.load(path))
-    if values is None:
-        values = {}
-    if not isinstance(values, dict):
-        raise ConfigError(f"config file {path} must be a mapping of config groups, got {type(values).__name__}")
-    recorded = values.pop(ALGORITHM_KEY, None)
-    return values, None if recorded is None else str(recorded)
-
-def check_recorded_algorithm(recorded: str | None, expected: str) -> None:
-    """Refuse a saved config whose recorded method is not the one its values describe (e.g. a HACO run folder
-    resumed with ``physics.enabled=true``)."""
-    if recorded is not None and recorded != expected:
-        raise invalid_value(ALGORITHM_KEY, recorded, f"the run folder's config describes {expected!r}; resume a "
-                            "run with the values it was started with")
 
 
 def _apply_human_defaults(cfg: DictConfig, given: set[str]) -> None:
@@ -263,64 +212,6 @@ def _check_relations(cfg: DictConfig) -> None:
                             "must be >= 1 with selector.enabled (the Q-ensemble is fitted on warm-up data)")
 
 
-def _env_type_problem(default: Any, value: Any) -> str | None:
-    """What DrivingConfig would choke on with a TypeError (or accept wrongly): judged by the default's type."""
-    if isinstance(default, bool):
-        return rule_bool(value)
-    if isinstance(default, int):
-        return None if isinstance(value, int) and not isinstance(value, bool) else "must be an integer"
-    if isinstance(default, float):
-        return None if rule_number()(value) is None else "must be a finite number"
-    if isinstance(default, tuple):
-        ok = isinstance(value, (list, tuple)) and all(isinstance(x, str) for x in value)
-        return None if ok else "must be a list of names"
-    return None
-
-
-def check_env(env: DictConfig) -> None:
-    values = OmegaConf.to_container(env, resolve=True)
-    defaults = DrivingConfig()
-    known = [f.name for f in dataclasses.fields(DrivingConfig)]
-    for key, value in values.items():
-        if key not in known:
-            raise invalid_value(f"env.{key}", value, f"unknown DrivingConfig field; known: {known}")
-        problem = _env_type_problem(getattr(defaults, key), value)
-        if problem:
-            raise invalid_value(f"env.{key}", value, problem)
-    try:
-        DrivingConfig.from_dict(values)
-    except (ValueError, TypeError) as e:
-        match = re.match(r"DrivingConfig\.(\w+)=(.*?) is invalid: (.*)", str(e), re.S)
-        if match is None:
-            raise ConfigError(f"env={values!r} is invalid: {e}", "env") from e
-        name, shown, allowed = match.groups()
-        raise ConfigError(f"env.{name}={shown} is invalid: {allowed}", f"env.{name}") from e
-
-
-def check_mentor_kwargs(mentor: DictConfig) -> None:
-    if ":" in mentor.name:
-        return  # a user's class: its constructor arguments are checked when it is built
-    if mentor.name == "human":
-        check_human_kwargs(mentor.kwargs)
-        return
-    if mentor.name == "collapsing":
-        from pe_rlhf.mentors.collapsing import COLLAPSING_KWARGS
-
-        for key in mentor.kwargs:
-            if key not in COLLAPSING_KWARGS:
-                raise invalid_value(f"mentor.kwargs.{key}", mentor.kwargs[key],
-                            f"unknown CollapsingMentor argument; known: {list(COLLAPSING_KWARGS)}")
-        return
-    from pe_rlhf.mentors.simulated import SkillProfile
-
-    known = sorted(f.name for f in dataclasses.fields(SkillProfile))
-    for key in mentor.kwargs:
-        if key not in known:
-            raise invalid_value(f"mentor.kwargs.{key}", mentor.kwargs[key],
-                        f"unknown SkillProfile field for mentor {mentor.name!r}; known: {known}")
-
-
-
 # --------------------------------------------------------------------------- views
 
 
@@ -352,13 +243,6 @@ def algorithm_name(cfg: DictConfig) -> str:
     return method_name(cfg).removesuffix("+disturbance").lower()
 
 
-def driving_config(cfg: DictConfig, **changes: Any) -> DrivingConfig:
-    """The :class:`DrivingConfig` of ``cfg.env``, with ``changes`` on top (e.g. ``split="test"`` for eval)."""
-    values = {**OmegaConf.to_container(cfg.env, resolve=True), **changes}
-    check_env(OmegaConf.create(values))
-    return DrivingConfig.from_dict(values)
-
-
 def physics_config(cfg: DictConfig):
     """The :class:`~pe_rlhf.physics.policy.PhysicsConfig` of ``cfg.physics`` (paper IDM/MOBIL parameters)."""
     from pe_rlhf.physics.policy import PhysicsConfig
@@ -368,25 +252,5 @@ def physics_config(cfg: DictConfig):
                          use_idm=p.use_idm, use_mobil=p.use_mobil)
 
 
-def to_container(cfg: DictConfig) -> dict[str, Any]:
-    """A plain, resolved ``dict`` copy of ``cfg`` (for checkpoints, loggers, ``json``)."""
-    return OmegaConf.to_container(cfg, resolve=True)
-
-
-def save_config(cfg: DictConfig, path: str | Path, algorithm: str | None = None) -> Path:
-    """Write ``cfg`` (resolved) as YAML, with ``algorithm`` (a run's registry name) first as the top-level
-    :data:`ALGORITHM_KEY`; ``load_config(path, apply_profile=False)`` reads it back equal (with the profile
-    applied again, the profile's values would overwrite the saved overrides)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    if algorithm is not None:
-        cfg = OmegaConf.create({ALGORITHM_KEY: algorithm, **to_container(cfg)})
-    OmegaConf.save(cfg, path, resolve=True)
-    return path
-
-
-__all__ = ["ALGORITHM_KEY", "BACKENDS", "HUMAN_DEFAULTS", "OPEN_GROUPS", "PROFILES", "PROXY_Q_ALGORITHMS", "RULES",
-           "ConfigError", "algorithm_name", "check_recorded_algorithm", "default_config_path", "driving_config",
-           "finish_config",
-           "load_config", "method_name", "physics_config", "read_config_file", "save_config", "to_container",
-           "validate_config"]
+__all__ = ["HUMAN_DEFAULTS", "PROFILES", "PROXY_Q_ALGORITHMS", "RULES", "algorithm_name", "default_config_path",
+           "finish_config", "load_config", "method_name", "physics_config", "reference_table", "validate_config"]

@@ -2,7 +2,7 @@
 
 ``profile=cpu`` on the command line selects one (a recipe's ``config.yaml`` names its own in its ``defaults`` list,
 ``profile: paper``); its values replace the file's, and the command line's ``key=value`` overrides apply on top.
-:func:`pe_rlhf.training.config_compose.store_recipe_configs` registers each as ``profile/<name>``.
+:func:`pe_rlhf.runtime.config_compose.store_recipe_configs` registers each as ``profile/<name>``.
 """
 
 from __future__ import annotations

@@ -1,11 +1,11 @@
 """The proxy-Q recipes' config (PE-RLHF, HACO, HAIM-DRL) as structured configs: the one place for every field's
 default, type and rule.
 
-:class:`RecipeConfig` holds one dataclass per group; each field is a :func:`knob` with its default (the paper's
-values, spec §3), its declared type and its rule (:mod:`pe_rlhf.training.config_rules`: what is allowed, in the
-words of the error). Hydra composes a recipe's ``config.yaml`` over it
-(:mod:`pe_rlhf.training.config_compose`); :data:`RULES` (``{dotted field: rule}``) and :func:`defaults` are
-derived from it.
+:class:`RecipeConfig` holds one dataclass per group; each field is a :func:`~pe_rlhf.runtime.config_schema.knob` with
+its default (the paper's values, spec §3), its declared type and its rule (:mod:`pe_rlhf.runtime.config_rules`, and
+here the rules of these recipes' fields alone: what is allowed, in the words of the error). Hydra composes a recipe's
+``config.yaml`` over it (:data:`PROXY_Q`, :mod:`pe_rlhf.runtime.config_compose`); :data:`RULES` (``{dotted field:
+rule}``) and :func:`defaults` are derived from it.
 
 Method: PE-RLHF = ``physics.enabled`` + ``selector.enabled``; HACO = both false (``recipes/haco``); HAIM-DRL =
 HACO + ``disturbance.enabled`` (``recipes/haim_drl``).
@@ -16,23 +16,18 @@ The composed config is not type-checked by OmegaConf (its typed nodes would turn
 
 from __future__ import annotations
 
-import copy
 import dataclasses
+import importlib.util
 from dataclasses import dataclass, field
 from typing import Any, Optional
 
 from pe_rlhf.modules.precision import PRECISIONS
 from pe_rlhf.objectives.perlhf import FAILURE_TARGETS, GAP_ACTIONS
 from pe_rlhf.physics.safety import RECOVERIES
-from pe_rlhf.training.config_profiles import PROFILES
-from pe_rlhf.training.config_rules import (
-    FIT_LOSSES,
-    INTERVENTION_CRITIC_ACTIONS,
-    REFRESH_DATA,
+from pe_rlhf.runtime.config_compose import RecipeSchema
+from pe_rlhf.runtime.config_rules import (
     SPLITS,
-    WANDB_MODES,
     Rule,
-    rule_backend,
     rule_bool,
     rule_choice,
     rule_hidden,
@@ -42,24 +37,35 @@ from pe_rlhf.training.config_rules import (
     rule_optional,
     rule_string,
     rule_target_entropy,
-    rule_value_source,
 )
+from pe_rlhf.runtime.config_schema import LoggerConfig, knob, open_group
+from pe_rlhf.training.config_profiles import PROFILES
 
-OPEN_GROUPS = ("env", "mentor.kwargs")  # free-form groups, checked by name in validate_config
-
-
-def knob(default: Any, rule: Rule) -> Any:
-    """A config field: its default and its rule (``field.metadata["rule"]``)."""
-    if isinstance(default, (list, dict)):
-        return field(default_factory=lambda: copy.deepcopy(default), metadata={"rule": rule})
-    return field(default=default, metadata={"rule": rule})
+BACKENDS = ("single", "multisync", "multiasync", "ray")
+FIT_LOSSES = ("mean", "member")
+REFRESH_DATA = ("warmup", "all")
+INTERVENTION_CRITIC_ACTIONS = ("agent", "behavior")
 
 
-def open_group(default: dict[str, Any], rule: Rule | None = None) -> Any:
-    """A free-form group (any key; checked by name in :func:`~pe_rlhf.training.config.validate_config`), with
-    ``rule`` for the group as a whole if given."""
-    metadata = {"open": True} if rule is None else {"open": True, "rule": rule}
-    return field(default_factory=lambda: copy.deepcopy(default), metadata=metadata)
+def rule_value_source(v) -> str | None:
+    from pe_rlhf.training.value_expert import packaged_expert_path, parse_value_source
+
+    try:
+        _, path = parse_value_source(v)
+    except ValueError as err:
+        return str(err).split("; ", 1)[1]
+    path = path if path is not None or v != "expert" else packaged_expert_path()
+    if path is not None and not path.exists():
+        return f"{str(path)!r} does not exist (a Q-ensemble file or a run folder)"
+    return None
+
+
+def rule_backend(v) -> str | None:
+    if v not in BACKENDS:
+        return f"allowed: {list(BACKENDS)}"
+    if v == "ray" and importlib.util.find_spec("ray") is None:
+        return "'ray' needs the ray package, which is not installed (pip install ray); use multisync or multiasync"
+    return None
 
 
 # HybridActionSelector keeps the mentor iff mean_k[Q_k(s, a_mentor) - Q_k(s, a_phy)] >= epsilon_select.
@@ -232,18 +238,6 @@ class DisturbanceConfig:
 
 
 @dataclass
-class LoggerConfig:
-    out_dir: Optional[str] = knob(None, rule_optional(rule_string))  # null: the recipe picks a run directory
-    csv: bool = knob(True, rule_bool)
-    wandb: bool = knob(False, rule_bool)
-    wandb_mode: str = knob("offline", rule_choice(*WANDB_MODES))  # offline | online | disabled
-    wandb_project: str = knob("pe-rlhf", rule_string)
-    tensorboard: bool = knob(False, rule_bool)
-    mlflow: bool = knob(False, rule_bool)  # MLflow: $MLFLOW_TRACKING_URI, else <run folder>/mlruns
-    log_every: int = knob(1, rule_int(1))  # iterations between log lines
-
-
-@dataclass
 class EvalConfig:
     every_frames: int = knob(5000, rule_int(0))  # 0: no periodic evaluation
     episodes: int = knob(10, rule_int(1))
@@ -310,4 +304,9 @@ def default(key: str) -> Any:
     return node
 
 
-__all__ = ["OPEN_GROUPS", "RULES", "RecipeConfig", "default", "defaults", "knob", "open_group"]
+SCHEMA = "pe_rlhf_schema"  # the structured config's name in Hydra's ConfigStore (recipes/pe_rlhf/config.yaml names it)
+PROXY_Q = RecipeSchema(SCHEMA, defaults, PROFILES)  # PE-RLHF, HACO, HAIM-DRL
+
+
+__all__ = ["BACKENDS", "PROXY_Q", "RULES", "SCHEMA", "RecipeConfig", "default", "defaults", "rule_backend",
+           "rule_value_source"]

@@ -1,5 +1,5 @@
-"""The learner's networks of a recipe config: the observation width, the actor, and ``PERLHFLoss`` with its
-critics. A module of its own, so that loading a run folder's actor
+"""The learner's networks of a recipe config: the actor, and ``PERLHFLoss`` with its critics (their input width:
+:func:`pe_rlhf.runtime.world.obs_dim`). A module of its own, so that loading a run folder's actor
 (:mod:`pe_rlhf.training.trained_policy`) needs nothing of the env and collector builders
 (:mod:`pe_rlhf.training.builders`, which re-exports these).
 """
@@ -10,15 +10,7 @@ from torchrl.objectives import SoftUpdate
 
 from pe_rlhf.modules import make_actor, make_qvalue
 from pe_rlhf.objectives import PERLHFLoss
-
-
-def obs_dim(cfg) -> int:
-    """The observation size of ``cfg.env``'s world (the networks' input width)."""
-    from pe_rlhf.envs.observation import observation_size
-    from pe_rlhf.training.config import driving_config
-
-    world = driving_config(cfg)
-    return observation_size(world.lidar_beams, world.lane_features)
+from pe_rlhf.runtime.world import obs_dim
 
 
 def build_actor(cfg):
@@ -48,4 +40,4 @@ def build_loss(cfg, actor) -> tuple[PERLHFLoss, SoftUpdate]:
     return loss, SoftUpdate(loss, tau=float(cfg.loss.tau))
 
 
-__all__ = ["build_actor", "build_loss", "obs_dim"]
+__all__ = ["build_actor", "build_loss"]

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import torch
 
+from pe_rlhf.runtime.world import obs_dim
 from pe_rlhf.training import model_builders as builders
 
 
@@ -22,7 +23,8 @@ def _baseline_method(run_dir: Path) -> str | None:
     PE-RLHF/HACO/HAIM-DRL run."""
     from omegaconf import OmegaConf
 
-    from pe_rlhf.training.config import ALGORITHM_KEY, PROXY_Q_ALGORITHMS
+    from pe_rlhf.runtime.config import ALGORITHM_KEY
+    from pe_rlhf.training.config import PROXY_Q_ALGORITHMS
 
     if not (run_dir / "config.yaml").exists():
         raise FileNotFoundError(f"{run_dir} is not a training run folder (no config.yaml)")
@@ -47,14 +49,14 @@ def _run_config(run_dir: Path):
 def run_world(run_dir: str | Path):
     """The :class:`~pe_rlhf.envs.config.DrivingConfig` the run in ``run_dir`` (either kind) trained in (its
     ``env`` group): its agent must be evaluated with the same observation (``lane_features``, ``lidar_beams``)."""
-    from pe_rlhf.training.config import driving_config
+    from pe_rlhf.runtime.config import driving_config
 
     return driving_config(_run_config(Path(run_dir)))
 
 
 def run_observation_size(run_dir: str | Path) -> int:
     """The observation width the actor of the run in ``run_dir`` (either kind) reads."""
-    return builders.obs_dim(_run_config(Path(run_dir)))
+    return obs_dim(_run_config(Path(run_dir)))
 
 
 def load_run_actor(run_dir: str | Path):
@@ -69,7 +71,7 @@ def load_run_actor(run_dir: str | Path):
     if not (run_dir / "actor.pt").exists():
         raise FileNotFoundError(f"{run_dir}: the baseline run has no actor.pt (it has not finished)")
     cfg = _run_config(run_dir)
-    actor = make_actor(builders.obs_dim(cfg), hidden=tuple(cfg.loss.hidden))
+    actor = make_actor(obs_dim(cfg), hidden=tuple(cfg.loss.hidden))
     actor.load_state_dict(torch.load(run_dir / "actor.pt", weights_only=True, map_location="cpu"))
     return actor
 

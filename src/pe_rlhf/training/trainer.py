@@ -16,9 +16,9 @@ checkpoints, ``--resume``, finish); its batches, and :meth:`ProxyQLearner.learn`
 4. (the run's) every ``eval.every_frames``: evaluation on the test split without the mentor; every
    ``checkpoint.every_frames``: a checkpoint (``--resume DIR`` continues from it).
 
-What a run survives: each collected batch is journaled (:mod:`pe_rlhf.training.journal`) before
+What a run survives: each collected batch is journaled (:mod:`pe_rlhf.runtime.journal`) before
 it is used, and with the ``single`` backend each episode that ends inside the batch being collected
-is written at once (:mod:`pe_rlhf.training.episode_journal`), so ``--resume`` after a kill replays
+is written at once (:mod:`pe_rlhf.runtime.episode_journal`), so ``--resume`` after a kill replays
 the batches since the checkpoint with the RNG states they arrived with, then trains on the
 collected batch's steps up to its last finished episode as a short batch, and loses only the steps
 of the episode in progress since the batch began (multi-worker backends: the batch being collected);
@@ -29,7 +29,7 @@ with a checkpoint of its last frame; ``train/sim_errors_total`` counts episodes 
 faults ended (:mod:`pe_rlhf.envs.driving_env`).
 
 A checkpoint taken while collecting (``single`` backend) holds the collection in progress
-(:mod:`pe_rlhf.training.collection_state`: the episode, the takeover, the selector's veto count, the
+(:mod:`pe_rlhf.runtime.collection_state`: the episode, the takeover, the selector's veto count, the
 collector's carrier), so ``--resume`` from it with no journal after it (a run's folder kept at that
 checkpoint) continues bit-identically to the run that went on; after a kill, the journal's batches are
 replayed and collection starts a fresh episode.
@@ -53,16 +53,16 @@ from pe_rlhf.evaluation import TorchRLPolicyAdapter, evaluate
 from pe_rlhf.modules import EnsembleSchedule
 from pe_rlhf.objectives import fit_q_ensemble
 from pe_rlhf.runtime.checkpoint import capture_rng, restore_rng
+from pe_rlhf.runtime.collection_state import capture_collection, restore_collection
 from pe_rlhf.runtime.run import Learner, Run
 from pe_rlhf.threads import torch_threads
 from pe_rlhf.training import builders
-from pe_rlhf.training.collection_state import capture_collection, restore_collection
 from pe_rlhf.training.config import algorithm_name, method_name
 from pe_rlhf.training.steps import batch_metrics, ensemble_transitions, relabel_warmup
 from pe_rlhf.transforms import InterventionTransform, RealtimePacing
 
 if TYPE_CHECKING:
-    from pe_rlhf.training.journal import JournalEntry
+    from pe_rlhf.runtime.journal import JournalEntry
 
 class Counters:
     """Cumulative training bookkeeping (saved in checkpoints)."""
@@ -100,7 +100,7 @@ def record_test_video(actor, cfg, env_config, path: Path, logger=None, step: int
     ``VIDEO_MAX_STEPS`` steps (40 s of driving), also sent to ``logger.log_video`` when the logger has
     one (``eval/test_episode`` at ``step``); returns where it ended (success, crash, ...)."""
     from pe_rlhf.envs import scene_seeds
-    from pe_rlhf.training.video import record_episode_gif
+    from pe_rlhf.runtime.video import record_episode_gif
 
     seed = scene_seeds(str(cfg.eval.split))[0]
     log_video = getattr(logger, "log_video", None)
@@ -109,27 +109,6 @@ def record_test_video(actor, cfg, env_config, path: Path, logger=None, step: int
     if log_video is not None:
         log_video("eval/test_episode", info["video"], step=step)
     return {k: info[k] for k in ("path", "steps", "success", "crash_vehicle", "crash_object", "out_of_road")}
-
-
-def registered_policies() -> list[str]:
-    """Names :func:`evaluate_reference` accepts (the evaluation registry, mentors included)."""
-    import pe_rlhf.mentors.registry  # noqa: F401
-    from pe_rlhf.evaluation import POLICY_FACTORIES
-
-    return list(POLICY_FACTORIES)
-
-
-def evaluate_reference(policy_name: str, cfg, episodes: int | None = None) -> dict:
-    """A registered policy (e.g. ``idm-mobil``) on the same ``eval.split`` seeds as :func:`evaluate_actor`,
-    for the comparison table printed after training (``train.py --compare idm-mobil``)."""
-    import pe_rlhf.mentors.registry  # noqa: F401  (registers the mentors as evaluation policies)
-    from pe_rlhf.envs import scene_seeds
-    from pe_rlhf.evaluation import make_policy
-    from pe_rlhf.training.config import driving_config
-
-    seeds = scene_seeds(str(cfg.eval.split))[: int(episodes or cfg.eval.episodes)]
-    return evaluate(make_policy(policy_name, int(cfg.seed)), seeds, driving_config(cfg), progress=False,
-                    name=policy_name).to_dict()
 
 
 def pacing_log(pacing: RealtimePacing | None, frames: int) -> dict[str, float]:
@@ -182,12 +161,12 @@ def train(cfg, out_dir: Path, logger, checkpoint_dir: Path | None = None, resume
 
 class ProxyQLearner(Learner):
     """PE-RLHF, HACO and HAIM-DRL as a :class:`~pe_rlhf.runtime.run.Learner`: its objects, and the work done
-    on each batch, collected or replayed from the journal on ``--resume`` (:mod:`pe_rlhf.training.journal`)."""
+    on each batch, collected or replayed from the journal on ``--resume`` (:mod:`pe_rlhf.runtime.journal`)."""
 
     def __init__(self, cfg, logger, checkpoint_dir: Path | None, update_threads: int):
-        from pe_rlhf.training.config import driving_config
-        from pe_rlhf.training.episode_journal import PendingEpisodesJournal
-        from pe_rlhf.training.journal import BatchJournal
+        from pe_rlhf.runtime.config import driving_config
+        from pe_rlhf.runtime.episode_journal import PendingEpisodesJournal
+        from pe_rlhf.runtime.journal import BatchJournal
 
         self.cfg, self.logger, self.name = cfg, logger, method_name(cfg)  # the logger: the test episode's video
         self.env_config = driving_config(cfg)

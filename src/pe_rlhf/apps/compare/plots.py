@@ -33,7 +33,7 @@ PANELS = (
 
 @lru_cache(maxsize=128)
 def _read_rows(csv_path: Path, mtime_ns: int, size: int) -> tuple[dict[str, float], ...]:
-    from pe_rlhf.training.metrics_logger import read_metrics_csv
+    from pe_rlhf.runtime.metrics_logger import read_metrics_csv
 
     return tuple(read_metrics_csv(csv_path)[1])
 

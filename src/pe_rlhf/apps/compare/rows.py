@@ -181,7 +181,8 @@ def infer_label(source: Source) -> str:
     elif "physics" in config or "selector" in config:
         from omegaconf import OmegaConf
 
-        from pe_rlhf.training.config import ConfigError, method_name
+        from pe_rlhf.runtime.config_rules import ConfigError
+        from pe_rlhf.training.config import method_name
 
         switches = OmegaConf.create({group: {"enabled": bool(_get(config, f"{group}.enabled", False))}
                                      for group in ("physics", "selector", "disturbance")})

@@ -94,7 +94,7 @@ def expand(spec: SweepSpec) -> list[Cell]:
 def check_cell_configs(cells: list[Cell]) -> None:
     """Load every cell's recipe config (validated, as the recipe will): a bad override fails here, naming
     the cell and the field, before anything runs."""
-    from pe_rlhf.training.config import ConfigError
+    from pe_rlhf.runtime.config_rules import ConfigError
 
     for cell in cells:
         try:
@@ -111,7 +111,7 @@ def _load_config(cell: Cell):
         cfg = load_config(proxy_q_config_path("pe_rlhf" if recipe == "evaluate" else recipe), cell.overrides)
         _build_mentor(cfg)
         if recipe == "evaluate":
-            from pe_rlhf.training.trainer import registered_policies
+            from pe_rlhf.runtime.recipe import registered_policies
 
             if cell.method.policy not in registered_policies():
                 raise ValueError(f"policy {cell.method.policy!r} is not registered; "

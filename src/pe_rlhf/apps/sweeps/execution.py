@@ -72,8 +72,9 @@ def _evaluate_only(policy: str, argv: list[str], directory: Path) -> None:
     """An evaluation-only cell: ``policy`` on the scenes the recipe's final evaluation uses (its
     ``eval.split`` / ``eval.episodes`` / ``env``), written as the cell's ``final_eval.json``."""
     from pe_rlhf.evaluation import write_json
-    from pe_rlhf.training.config import load_config, save_config
-    from pe_rlhf.training.trainer import evaluate_reference
+    from pe_rlhf.runtime.config import save_config
+    from pe_rlhf.runtime.recipe import evaluate_reference
+    from pe_rlhf.training.config import load_config
 
     overrides = argv[: argv.index("--out")]
     cfg = load_config(None, overrides)

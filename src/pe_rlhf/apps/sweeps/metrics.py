@@ -58,7 +58,7 @@ DEFAULT_METRICS = ("success_rate", "safety_violation", "train_safety_violations"
 def last_csv_row(path: Path) -> dict[str, float]:
     if not path.is_file():
         return {}
-    from pe_rlhf.training.metrics_logger import read_metrics_csv
+    from pe_rlhf.runtime.metrics_logger import read_metrics_csv
 
     _, rows = read_metrics_csv(path)
     return rows[-1] if rows else {}

@@ -162,7 +162,7 @@ def run_warmup_steps(run_dir: Path) -> float:
 
 def run_curve(path: Path, column: str) -> dict[float, float]:
     """``{env_steps: value}`` of one run's ``metrics.csv``: a logged column, or ``windowed_value_takeover_rate``."""
-    from pe_rlhf.training.metrics_logger import read_metrics_csv
+    from pe_rlhf.runtime.metrics_logger import read_metrics_csv
 
     _, rows = read_metrics_csv(path)
     if column == "windowed_value_takeover_rate":

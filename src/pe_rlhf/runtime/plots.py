@@ -1,6 +1,6 @@
 """Learning curves from a metrics CSV: a training panel and a testing panel (spec §6).
 
-Column naming convention (what :class:`~pe_rlhf.training.metrics_logger.MetricsLogger`
+Column naming convention (what :class:`~pe_rlhf.runtime.metrics_logger.MetricsLogger`
 writes and these plots read; the x axis is ``step``, environment steps):
 
 - ``train/<name>``: training-time counters and rates, e.g.
@@ -16,7 +16,7 @@ writes and these plots read; the x axis is ``step``, environment steps):
   where ``<metric>`` is a key of ``EvaluationSummary.to_dict()``
   (``episodic_return``, ``success_rate``, ``safety_violation``, ``travel_distance``,
   ``travel_velocity``, ``overtake_count``, ...); see
-  :func:`~pe_rlhf.training.metrics_logger.flatten_eval_summary`.
+  :func:`~pe_rlhf.runtime.metrics_logger.flatten_eval_summary`.
 
 Missing columns leave their subplot marked "not logged"; blank cells are skipped.
 """
@@ -34,7 +34,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from pe_rlhf.training.metrics_logger import STEP, read_metrics_csv  # noqa: E402
+from pe_rlhf.runtime.metrics_logger import STEP, read_metrics_csv  # noqa: E402
 
 # (column, title) in the spec's order; training panel slot 6 holds every ``loss/`` column.
 TRAINING_PANEL = (

@@ -1,6 +1,6 @@
 """``PendingEpisodesJournal``: write every episode that ends inside the batch being collected, at once.
 
-The batch journal (:mod:`pe_rlhf.training.journal`) gets a batch when the collector hands it over,
+The batch journal (:mod:`pe_rlhf.runtime.journal`) gets a batch when the collector hands it over,
 every ``collector.frames_per_batch`` steps; a kill before that would lose the episodes that already
 ended inside the batch, a person's finished work. Appended as the training env's last transform,
 this one keeps a copy of each step of the current batch and, when a step ends an episode (``("next",
@@ -32,7 +32,7 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.envs import Transform
 
-from pe_rlhf.training.journal import BatchJournal
+from pe_rlhf.runtime.journal import BatchJournal
 
 __all__ = ["PendingEpisodesJournal"]
 
@@ -45,7 +45,7 @@ class PendingEpisodesJournal(Transform):
     entries, ``k`` the steps from the batch's start to the episode's end.
 
     Args:
-        journal: where the pending files go (the run's :class:`~pe_rlhf.training.journal.BatchJournal`).
+        journal: where the pending files go (the run's :class:`~pe_rlhf.runtime.journal.BatchJournal`).
         frames_per_batch: the collector's ``frames_per_batch``.
         state: called at each episode end for the JSON-serialisable actor state stored with the steps
             (None: ``{}``).

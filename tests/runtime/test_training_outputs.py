@@ -11,9 +11,9 @@ import warnings
 import numpy as np
 import pytest
 
-from pe_rlhf.training.metrics_logger import MetricsLogger, flatten_eval_summary, read_metrics_csv
-from pe_rlhf.training.plots import TESTING_PANEL, plot_learning_curves
-from pe_rlhf.training.video import CAPTION_HEIGHT
+from pe_rlhf.runtime.metrics_logger import MetricsLogger, flatten_eval_summary, read_metrics_csv
+from pe_rlhf.runtime.plots import TESTING_PANEL, plot_learning_curves
+from pe_rlhf.runtime.video import CAPTION_HEIGHT
 
 
 def _read(path):
@@ -194,7 +194,7 @@ def test_plots_with_missing_columns(tmp_path):
 def test_training_panel_marks_the_end_of_warmup(tmp_path):
     import matplotlib.pyplot as plt
 
-    from pe_rlhf.training.plots import WARMUP_LABEL, _training_figure
+    from pe_rlhf.runtime.plots import WARMUP_LABEL, _training_figure
 
     with MetricsLogger(tmp_path) as logger:
         for step in (50, 100, 150, 200):
@@ -221,7 +221,7 @@ def test_episode_gif_idm_mobil(tmp_path):
     from PIL import Image
 
     from pe_rlhf.evaluation import make_policy
-    from pe_rlhf.training.video import record_episode_gif
+    from pe_rlhf.runtime.video import record_episode_gif
 
     path = tmp_path / "gifs" / "idm.gif"
     info = record_episode_gif(make_policy("idm-mobil", 0), None, 1000, path, max_steps=20)
@@ -243,7 +243,7 @@ def test_episode_gif_captions_who_drives_in_a_takeover_run(tmp_path):
     from pe_rlhf.mentors import make_mentor
     from pe_rlhf.physics import IDMMobilPolicy
     from pe_rlhf.physics.safety import SafetyForecastValue
-    from pe_rlhf.training.video import DRIVER_COLOURS, driver_of, label_frame, record_episode_gif
+    from pe_rlhf.runtime.video import DRIVER_COLOURS, driver_of, label_frame, record_episode_gif
     from pe_rlhf.transforms import HybridActionSelector
     from pe_rlhf.wrappers import InterventionWrapper
 

@@ -1,4 +1,4 @@
-"""``pe_rlhf.training.collection_state``: the collector's carrier through JSON, exactly."""
+"""``pe_rlhf.runtime.collection_state``: the collector's carrier through JSON, exactly."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import json
 import torch
 from tensordict import TensorDict
 
-from pe_rlhf.training.collection_state import capture_collection, decode_tensordict, encode_tensordict
+from pe_rlhf.runtime.collection_state import capture_collection, decode_tensordict, encode_tensordict
 
 
 def test_a_carrier_survives_json_bit_for_bit():

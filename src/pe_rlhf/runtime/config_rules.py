@@ -1,13 +1,14 @@
-"""The recipe config's field rules: each takes a value and says what is allowed (None when the value is fine).
+"""The field rules every recipe config uses: each takes a value and says what is allowed (None when the value is fine).
 
 A rule's message is the "what is allowed" half of a :class:`ConfigError` (``optim.lr=-1 is invalid: must be a finite
 number > 0``); :func:`invalid_value` builds the whole error. The fields that use them are declared, with their
-defaults, in :mod:`pe_rlhf.training.config_schema`.
+defaults, in each family's structured config (:mod:`pe_rlhf.training.config_schema` for the proxy-Q recipes,
+:mod:`pe_rlhf.baselines.config_schema` and :mod:`pe_rlhf.baselines.imitation_schema`), through
+:mod:`pe_rlhf.runtime.config_schema`; a rule of one family's fields alone lives in that family's schema.
 """
 
 from __future__ import annotations
 
-import importlib.util
 import math
 import re
 from collections.abc import Callable
@@ -15,10 +16,6 @@ from typing import Any
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
-BACKENDS = ("single", "multisync", "multiasync", "ray")
-FIT_LOSSES = ("mean", "member")
-REFRESH_DATA = ("warmup", "all")
-INTERVENTION_CRITIC_ACTIONS = ("agent", "behavior")
 WANDB_MODES = ("offline", "online", "disabled")
 SPLITS = ("train", "test")
 IMPORT_PATH = re.compile(r"^[A-Za-z_]\w*(\.[A-Za-z_]\w*)*:[A-Za-z_]\w*$")
@@ -103,28 +100,6 @@ def rule_mentor_name(v) -> str | None:
     if isinstance(v, str) and (v in MENTOR_NAMES or IMPORT_PATH.match(v)):
         return None
     return f"allowed: {list(MENTOR_NAMES)} or a 'package.module:ClassName' import path"
-
-
-def rule_value_source(v) -> str | None:
-    from pe_rlhf.training.value_expert import packaged_expert_path, parse_value_source
-
-    try:
-        _, path = parse_value_source(v)
-    except ValueError as err:
-        return str(err).split("; ", 1)[1]
-    path = path if path is not None or v != "expert" else packaged_expert_path()
-    if path is not None and not path.exists():
-        return f"{str(path)!r} does not exist (a Q-ensemble file or a run folder)"
-    return None
-
-
-def rule_backend(v) -> str | None:
-    if v not in BACKENDS:
-        return f"allowed: {list(BACKENDS)}"
-    if v == "ray" and importlib.util.find_spec("ray") is None:
-        return "'ray' needs the ray package, which is not installed (pip install ray); use multisync or multiasync"
-    return None
-
 
 
 def rule_window_size(v) -> str | None:

@@ -2,10 +2,10 @@
 
 :class:`MetricsLogger` fans each :meth:`~MetricsLogger.log` call out to the TorchRL loggers it was
 configured with (:attr:`MetricsLogger.loggers`): the crash-safe CSV
-(:class:`~pe_rlhf.training.csv_logger.CrashSafeCSVLogger`, one row per call: ``step`` (environment
+(:class:`~pe_rlhf.runtime.csv_logger.CrashSafeCSVLogger`, one row per call: ``step`` (environment
 steps) plus the given metrics) and TorchRL's own ``WandbLogger``, ``TensorboardLogger`` and
 ``MLFlowLogger``; :meth:`~MetricsLogger.log_video` sends a video (the test episode) to the ones that
-take videos. Column names follow the convention in :mod:`pe_rlhf.training.plots` (``train/...``,
+take videos. Column names follow the convention in :mod:`pe_rlhf.runtime.plots` (``train/...``,
 ``loss/...``, ``eval/<metric>_mean`` / ``eval/<metric>_std``); :func:`flatten_eval_summary` turns an
 evaluation summary into the ``eval/`` columns.
 """
@@ -21,7 +21,7 @@ from typing import Any, Iterable, Mapping
 
 from torchrl.record.loggers.tensorboard import TensorboardLogger
 
-from pe_rlhf.training.csv_logger import CSV_NAME, STEP, CrashSafeCSVLogger, to_number
+from pe_rlhf.runtime.csv_logger import CSV_NAME, STEP, CrashSafeCSVLogger, to_number
 
 VIDEO_FPS = 10  # the test-episode GIF's rate: the env's 10 Hz policy, real time
 

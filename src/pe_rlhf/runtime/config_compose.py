@@ -7,17 +7,18 @@ A recipe's ``config.yaml`` is a Hydra primary config (``recipes/pe_rlhf/config.y
       - _self_             # this file's values
       - profile: paper     # a config group: paper | cpu | quick | smoke (pe_rlhf.training.config_profiles)
 
-A :class:`RecipeSchema` names a family's structured config and its profiles: :data:`PROXY_Q` (the default
-everywhere here) for PE-RLHF, HACO and HAIM-DRL; each baseline has its own (``sac_lag_schema``, ...:
-:mod:`pe_rlhf.baselines.config`). :func:`store_recipe_configs` registers a schema and its ``profile`` group in
-Hydra's ConfigStore, with the Hydra settings that keep a run where it was started: no change of working
-directory, no ``outputs/``, ``multirun/`` or ``.hydra/`` folder, no log file (``hydra.run.dir: .``,
-``hydra.sweep.dir: .``, ``hydra.output_subdir: null``, ``hydra/job_logging: none``). Every family's profiles are
-the one ``profile`` group (``profile=smoke`` on any recipe's command line), so the group holds the profiles of
-the schema composed last; each composition registers its own under the lock it composes under.
-:func:`compose_file` composes a recipe file (``@hydra.main`` composes the same in a recipe's ``train.py``);
-a file without a ``defaults`` list (a partial file, a run's saved ``config.yaml``) is composed over the schema
-as if it were the recipe's. Hydra's errors become a :class:`ConfigError` of one line that names the field.
+A :class:`RecipeSchema` names a family's structured config and its profiles: PE-RLHF, HACO and HAIM-DRL share
+:data:`~pe_rlhf.training.config_schema.PROXY_Q`; each baseline has its own (``sac_lag_schema``, ...:
+:mod:`pe_rlhf.baselines.config`). Every function here takes the schema it composes; none knows a method.
+:func:`store_recipe_configs` registers a schema and its ``profile`` group in Hydra's ConfigStore, with the Hydra
+settings that keep a run where it was started: no change of working directory, no ``outputs/``, ``multirun/`` or
+``.hydra/`` folder, no log file (``hydra.run.dir: .``, ``hydra.sweep.dir: .``, ``hydra.output_subdir: null``,
+``hydra/job_logging: none``). Every family's profiles are the one ``profile`` group (``profile=smoke`` on any
+recipe's command line), so the group holds the profiles of the schema composed last; each composition registers its
+own under the lock it composes under. :func:`compose_file` composes a recipe file (``@hydra.main`` composes the same
+in a recipe's ``train.py``); a file without a ``defaults`` list (a partial file, a run's saved ``config.yaml``) is
+composed over the schema as if it were the recipe's. Hydra's errors become a :class:`ConfigError` of one line that
+names the field.
 """
 
 from __future__ import annotations
@@ -36,11 +37,9 @@ from hydra.initialize import get_gh_backup, restore_gh_from_backup
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
-from pe_rlhf.training.config_profiles import PROFILES
-from pe_rlhf.training.config_rules import ConfigError, invalid_value
-from pe_rlhf.training.config_schema import OPEN_GROUPS, defaults
+from pe_rlhf.runtime.config_rules import ConfigError, invalid_value
+from pe_rlhf.runtime.config_schema import OPEN_GROUPS
 
-SCHEMA = "pe_rlhf_schema"  # the structured config's name in the ConfigStore
 PROFILE_GROUP = "profile"
 _FILE_VALUES = "pe_rlhf_file_values"  # a file without a defaults list, over the schema
 _FILE_JOB = "pe_rlhf_file_job"
@@ -68,12 +67,11 @@ class RecipeSchema:
     open_groups: tuple[str, ...] = OPEN_GROUPS
 
 
-PROXY_Q = RecipeSchema(SCHEMA, defaults, PROFILES)  # PE-RLHF, HACO, HAIM-DRL
 _STORED: set[str] = set()  # the schemas registered in this process (they are constants)
 _PROFILES_OF: str | None = None  # the schema whose profiles the profile group holds
 
 
-def schema_node(schema: RecipeSchema = PROXY_Q) -> DictConfig:
+def schema_node(schema: RecipeSchema) -> DictConfig:
     """The schema's defaults as a DictConfig: closed groups (an unknown key fails) but its open groups; not
     typed (the rules check every value after composition)."""
     cfg = OmegaConf.create(schema.defaults())
@@ -81,7 +79,7 @@ def schema_node(schema: RecipeSchema = PROXY_Q) -> DictConfig:
     return cfg
 
 
-def store_recipe_configs(schema: RecipeSchema = PROXY_Q) -> None:
+def store_recipe_configs(schema: RecipeSchema) -> None:
     """Register ``schema`` (once a process, with :data:`HYDRA_SETTINGS`) and its profiles as the ``profile``
     group (in place of another family's)."""
     global _PROFILES_OF
@@ -116,7 +114,7 @@ def override_key(item: str) -> str:
 YAML_FLOATS = {".nan": "nan", ".inf": "inf", "+.inf": "inf", "-.inf": "-inf"}
 
 
-def check_overrides(overrides: Iterable[str], profiles: Mapping[str, Any] = PROFILES) -> list[str]:
+def check_overrides(overrides: Iterable[str], profiles: Mapping[str, Any]) -> list[str]:
     """The overrides as a list, each ``key=value`` (Hydra's ``+key=value`` and ``~key`` too), a YAML special float
     (``.nan``, ``.inf``, ``-.inf``) spelled as Hydra reads it; a profile not in ``profiles`` fails here, naming
     them."""
@@ -144,7 +142,7 @@ def _hydra_float(item: Any) -> Any:
 
 
 def compose_file(path: Path, overrides: list[str], values: Mapping[str, Any], *, recipe: bool,
-                 apply_profile: bool = True, schema: RecipeSchema = PROXY_Q) -> DictConfig:
+                 apply_profile: bool = True, schema: RecipeSchema) -> DictConfig:
     """Compose the config file ``path`` whose values (its ``defaults`` list aside) are ``values``: with ``recipe``,
     a Hydra primary config (schema, file, profile from its ``defaults`` list); else ``values`` over ``schema``,
     then its profile (``profile:`` in ``values``; none with ``apply_profile=False``: a run's saved config). Then
@@ -241,5 +239,5 @@ def merge_values(cfg: DictConfig, values: Mapping | DictConfig, origin: str) -> 
         raise ConfigError(f"cannot apply {origin}: {e}") from e
 
 
-__all__ = ["HYDRA_SETTINGS", "PROFILE_GROUP", "PROXY_Q", "SCHEMA", "RecipeSchema", "check_key", "check_overrides", "compose_file", "leaf_keys",
-           "merge_values", "override_key", "schema_node", "store_recipe_configs"]
+__all__ = ["HYDRA_SETTINGS", "PROFILE_GROUP", "RecipeSchema", "check_key", "check_overrides", "compose_file",
+           "leaf_keys", "merge_values", "override_key", "schema_node", "store_recipe_configs"]

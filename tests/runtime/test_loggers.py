@@ -11,8 +11,8 @@ import torch
 from tensordict import TensorDict
 from torchrl.record.loggers import Logger
 
-from pe_rlhf.training.csv_logger import CrashSafeCSVLogger
-from pe_rlhf.training.metrics_logger import MetricsLogger
+from pe_rlhf.runtime.csv_logger import CrashSafeCSVLogger
+from pe_rlhf.runtime.metrics_logger import MetricsLogger
 
 
 def _rows(path) -> list[list[str]]:
@@ -91,7 +91,7 @@ def test_wandb_and_tensorboard_receive_scalars_and_the_test_episode_video(tmp_pa
     from torchrl.record.loggers import TensorboardLogger, WandbLogger
 
     from pe_rlhf.evaluation import make_policy
-    from pe_rlhf.training.video import CAPTION_HEIGHT, record_episode_gif
+    from pe_rlhf.runtime.video import CAPTION_HEIGHT, record_episode_gif
 
     video = record_episode_gif(make_policy("idm-mobil", 0), None, 1000, tmp_path / "episode.gif", max_steps=5,
                                keep_video=True)["video"]

@@ -9,7 +9,7 @@ the resumed run's bookkeeping equals the killed run's, step for step. Files olde
 checkpoint are deleted after each checkpoint.
 
 The batch being collected is covered too, up to its last finished episode: with the ``single``
-backend, :class:`~pe_rlhf.training.episode_journal.PendingEpisodesJournal` writes a *pending* file
+backend, :class:`~pe_rlhf.runtime.episode_journal.PendingEpisodesJournal` writes a *pending* file
 here each time an episode ends inside it (the batch's steps so far), deleted once the whole batch is
 journaled. ``--resume`` trains on the pending file that continues the journal as a short batch
 (:meth:`BatchJournal.pending_at`). So a kill loses only the steps of the episode in progress since

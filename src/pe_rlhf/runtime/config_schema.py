@@ -1,0 +1,47 @@
+"""What every recipe's structured config is built of: a field with its default and rule, an open group, the
+``logger`` group.
+
+Each family declares its config as dataclasses of :func:`knob` fields (:mod:`pe_rlhf.training.config_schema` for
+PE-RLHF, HACO and HAIM-DRL; :mod:`pe_rlhf.baselines.config_schema` and :mod:`pe_rlhf.baselines.imitation_schema`
+for the baselines), each field's rule from :mod:`pe_rlhf.runtime.config_rules`; :class:`LoggerConfig` is the
+``logger`` group they all share (what :class:`~pe_rlhf.runtime.metrics_logger.MetricsLogger` takes).
+"""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import dataclass, field
+from typing import Any, Optional
+
+from pe_rlhf.runtime.config_rules import WANDB_MODES, Rule, rule_bool, rule_choice, rule_int, rule_optional, rule_string
+
+OPEN_GROUPS = ("env", "mentor.kwargs")  # free-form groups, checked by name after composition
+
+
+def knob(default: Any, rule: Rule) -> Any:
+    """A config field: its default and its rule (``field.metadata["rule"]``)."""
+    if isinstance(default, (list, dict)):
+        return field(default_factory=lambda: copy.deepcopy(default), metadata={"rule": rule})
+    return field(default=default, metadata={"rule": rule})
+
+
+def open_group(default: dict[str, Any], rule: Rule | None = None) -> Any:
+    """A free-form group (any key; checked by name in :func:`~pe_rlhf.training.config.validate_config`), with
+    ``rule`` for the group as a whole if given."""
+    metadata = {"open": True} if rule is None else {"open": True, "rule": rule}
+    return field(default_factory=lambda: copy.deepcopy(default), metadata=metadata)
+
+
+@dataclass
+class LoggerConfig:
+    out_dir: Optional[str] = knob(None, rule_optional(rule_string))  # null: the recipe picks a run directory
+    csv: bool = knob(True, rule_bool)
+    wandb: bool = knob(False, rule_bool)
+    wandb_mode: str = knob("offline", rule_choice(*WANDB_MODES))  # offline | online | disabled
+    wandb_project: str = knob("pe-rlhf", rule_string)
+    tensorboard: bool = knob(False, rule_bool)
+    mlflow: bool = knob(False, rule_bool)  # MLflow: $MLFLOW_TRACKING_URI, else <run folder>/mlruns
+    log_every: int = knob(1, rule_int(1))  # iterations between log lines
+
+
+__all__ = ["OPEN_GROUPS", "LoggerConfig", "knob", "open_group"]
