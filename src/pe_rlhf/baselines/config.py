@@ -55,13 +55,13 @@ from pe_rlhf.runtime.config import (
 )
 from pe_rlhf.runtime.config_compose import RecipeSchema, check_overrides, compose_file, leaf_keys
 from pe_rlhf.runtime.config_rules import ConfigError, invalid_value
+from pe_rlhf.runtime.config_schema import OPEN_GROUPS  # free-form groups, checked by name in validate_baseline_config
 
 
 # Each method's structured config (pe_rlhf.baselines.config_schema, pe_rlhf.baselines.imitation_schema).
 SCHEMAS: dict[str, type] = {"sac_rs": SacRsConfig, "sac_lag": SacLagConfig, "ppo_rs": PpoRsConfig,
                             "ppo_lag": PpoLagConfig, "cpo": CpoConfig, "bc": BCConfig, "cql": CQLConfig,
                             "gail": GailConfig, "hg_dagger": HGDaggerConfig, "iwr": IWRConfig}
-OPEN_GROUPS = ("env", "mentor.kwargs")  # free-form groups, checked by name in validate_baseline_config
 
 
 def _fields(schema: type, prefix: str = ""):
