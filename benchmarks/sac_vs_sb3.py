@@ -8,8 +8,8 @@ buffer), one gradient step per env step. Before ``--learning-starts`` both act u
 random (SB3's habit; ours through ``collector.init_random_frames``). The timed window is the ``--steps`` env
 steps after learning starts, each with its update:
 
-- ours: :class:`pe_rlhf.runtime.run.Run` over :class:`pe_rlhf.algorithms.baselines.loop.BaselineLearner` as the recipe runs
-  it (Collector, ``frames_per_batch`` steps then as many updates, tracker, ``metrics.csv`` rows, progress bar), from the end of the iteration
+- ours: :class:`pe_rlhf.runtime.run.Run` over :class:`pe_rlhf.algorithms.baselines.loop.BaselineLearner` as the recipe
+  runs it (Collector, ``frames_per_batch`` steps then as many updates, tracker, ``metrics.csv`` rows, progress bar), from the end of the iteration
   at frame L to the end of the one at L + steps; no evaluation or checkpoint (the recipe's are periodic
   and would be the same for any learner). Acting runs on 1 thread, updates on ``--threads`` (the recipe's
   own choice, :mod:`pe_rlhf.threads`).

@@ -5,9 +5,9 @@
     python recipes/ppo_rs/train.py profile=smoke --cfg job   # print the composed config, run nothing
 
 TorchRL's layout: ``config.yaml`` beside this script (a Hydra config over the structured config
-:class:`~pe_rlhf.algorithms.baselines.config_schema.PpoRsConfig`); the ``@hydra.main`` function hands the composed config to
-:func:`pe_rlhf.algorithms.baselines.cli.hydra_task`. A bad value prints one line ``error: ...`` and exits 2; ``PE_RLHF_DEBUG=1``
-shows the traceback.
+:class:`~pe_rlhf.algorithms.baselines.config_schema.PpoRsConfig`); the ``@hydra.main`` function hands the composed
+config to :func:`pe_rlhf.algorithms.baselines.cli.hydra_task`. A bad value prints one line ``error: ...`` and exits 2;
+``PE_RLHF_DEBUG=1`` shows the traceback.
 """
 
 from __future__ import annotations

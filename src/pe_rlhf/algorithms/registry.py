@@ -6,7 +6,8 @@ turn the recipe into the method (HACO = the PE-RLHF recipe without physics and s
 display name, and which config key a mentor is set with (None: the method has no mentor).
 
 Families:
-- ``proxy_q``: the reward-free proxy-Q learners (PE-RLHF, HACO, HAIM-DRL), run by :func:`pe_rlhf.algorithms.proxy_q.recipe.main`;
+- ``proxy_q``: the reward-free proxy-Q learners (PE-RLHF, HACO, HAIM-DRL), run by
+  :func:`pe_rlhf.algorithms.proxy_q.recipe.main`;
 - ``sac``, ``ppo``, ``cpo``: reward-trained RL baselines, ``offline`` (BC, CQL), ``gail``, ``hil`` (HG-DAgger, IWR),
   run by :func:`pe_rlhf.algorithms.baselines.main`;
 - ``evaluate``: a fixed policy (IDM-MOBIL), scored on the recipe's test scenes.

@@ -1,10 +1,11 @@
 """What every recipe's structured config is built of: a field with its default and rule, an open group, the
 ``logger`` group.
 
-Each family declares its config as dataclasses of :func:`knob` fields (:mod:`pe_rlhf.algorithms.proxy_q.config_schema` for
-PE-RLHF, HACO and HAIM-DRL; :mod:`pe_rlhf.algorithms.baselines.config_schema` and :mod:`pe_rlhf.algorithms.baselines.imitation_schema`
-for the baselines), each field's rule from :mod:`pe_rlhf.runtime.config_rules`; :class:`LoggerConfig` is the
-``logger`` group they all share (what :class:`~pe_rlhf.runtime.metrics_logger.MetricsLogger` takes).
+Each family declares its config as dataclasses of :func:`knob` fields (:mod:`pe_rlhf.algorithms.proxy_q.config_schema`
+for PE-RLHF, HACO and HAIM-DRL; :mod:`pe_rlhf.algorithms.baselines.config_schema` and
+:mod:`pe_rlhf.algorithms.baselines.imitation_schema` for the baselines), each field's rule from
+:mod:`pe_rlhf.runtime.config_rules`; :class:`LoggerConfig` is the ``logger`` group they all share (what
+:class:`~pe_rlhf.runtime.metrics_logger.MetricsLogger` takes).
 """
 
 from __future__ import annotations

@@ -21,7 +21,8 @@ from omegaconf import OmegaConf
 from tensordict import TensorDict
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 
-from pe_rlhf.algorithms.baselines import METHODS, EpisodeTracker, default_config, load_baseline_actor, load_baseline_config, main
+from pe_rlhf.algorithms.baselines import (METHODS, EpisodeTracker, default_config, load_baseline_actor,
+                                          load_baseline_config, main)
 from pe_rlhf.algorithms.baselines.loop import compact_copy
 from pe_rlhf.evaluation import TorchRLPolicyAdapter
 from pe_rlhf.evaluation.evaluate import MEAN_STD_METRICS

@@ -386,7 +386,8 @@ def test_configuration_reference_page_is_the_rules_own_table():
 
     table = reference_table()
     page = (Path(__file__).resolve().parents[3] / "docs" / "guide" / "configuration.md").read_text()
-    assert table in page, "regenerate the table: python -c 'from pe_rlhf.algorithms.proxy_q.config import reference_table; print(reference_table())'"
+    assert table in page, ("regenerate the table: python -c 'from pe_rlhf.algorithms.proxy_q.config import "
+                           "reference_table; print(reference_table())'")
     assert len(table.splitlines()) == len(RULES) + 2
     assert "| `optim.lr` | `0.0001` | must be a finite number > 0 |" in table
     assert "| `collector.warmup_policy` | `null` | a non-empty string, or null |" in table

@@ -5,8 +5,8 @@
 errors: :mod:`pe_rlhf.runtime.config_compose`):
 
 1. the method's structured config (:data:`SCHEMAS`: :mod:`~pe_rlhf.algorithms.baselines.config_schema` and
-   :mod:`~pe_rlhf.algorithms.baselines.imitation_schema`; ``<method>_schema`` in Hydra's ConfigStore: the one place for each
-   field's default, type and rule),
+   :mod:`~pe_rlhf.algorithms.baselines.imitation_schema`; ``<method>_schema`` in Hydra's ConfigStore: the one place for
+   each field's default, type and rule),
 2. the recipe file (``path``, or ``recipes/<method>/config.yaml`` when found; may be partial),
 3. the profile, a config group (:data:`~pe_rlhf.algorithms.baselines.config_profiles.PROFILES`; ``profile=cpu`` on the
    command line, else the file's ``defaults`` list, or the ``profile:`` of a file without one),
@@ -58,7 +58,8 @@ from pe_rlhf.runtime.config_rules import ConfigError, invalid_value
 from pe_rlhf.runtime.config_schema import OPEN_GROUPS  # free-form groups, checked by name in validate_baseline_config
 
 
-# Each method's structured config (pe_rlhf.algorithms.baselines.config_schema, pe_rlhf.algorithms.baselines.imitation_schema).
+# Each method's structured config (pe_rlhf.algorithms.baselines.config_schema,
+# pe_rlhf.algorithms.baselines.imitation_schema).
 SCHEMAS: dict[str, type] = {"sac_rs": SacRsConfig, "sac_lag": SacLagConfig, "ppo_rs": PpoRsConfig,
                             "ppo_lag": PpoLagConfig, "cpo": CpoConfig, "bc": BCConfig, "cql": CQLConfig,
                             "gail": GailConfig, "hg_dagger": HGDaggerConfig, "iwr": IWRConfig}

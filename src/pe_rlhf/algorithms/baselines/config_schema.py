@@ -1,12 +1,14 @@
 """The RL and safe-RL baselines' structured configs (SAC-RS, SAC-Lag, PPO-RS, PPO-Lag, CPO), the groups every
 baseline shares and :data:`METHODS`: the one place for every field's default, type and rule.
 
-One dataclass per method (``SacLagConfig``, ...; the imitation methods' in :mod:`pe_rlhf.algorithms.baselines.imitation_schema`,
-all of them in :data:`pe_rlhf.algorithms.baselines.config.SCHEMAS`) built from one dataclass per group; each field is a
+One dataclass per method (``SacLagConfig``, ...; the imitation methods' in
+:mod:`pe_rlhf.algorithms.baselines.imitation_schema`, all of them in
+:data:`pe_rlhf.algorithms.baselines.config.SCHEMAS`) built from one dataclass per group; each field is a
 :func:`~pe_rlhf.runtime.config_schema.knob` with its default, its declared type and its rule
 (:mod:`pe_rlhf.runtime.config_rules`: what is allowed, in the words of the error). Values are the paper's appendix
 tables (SAC/SAC-Lag, PPO/PPO-Lag, CPO) where they give one ("paper" beside a field); every other value says where it
-comes from. Hydra composes a recipe's ``config.yaml`` over its method's schema (:mod:`pe_rlhf.algorithms.baselines.config`).
+comes from. Hydra composes a recipe's ``config.yaml`` over its method's schema
+(:mod:`pe_rlhf.algorithms.baselines.config`).
 
 Families (:data:`METHODS`): ``sac`` (SAC-RS, SAC-Lag: off-policy), ``ppo`` (PPO-RS, PPO-Lag), ``cpo``, and the
 imitation families ``offline`` (BC, CQL), ``gail`` and ``hil`` (HG-DAgger, IWR). "RS" is the env's shaped reward

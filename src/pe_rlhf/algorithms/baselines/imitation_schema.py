@@ -1,5 +1,6 @@
 """The imitation, offline and human-in-the-loop baselines' structured configs (BC, CQL, GAIL, HG-DAgger, IWR): the
-one place for every field's default, type and rule, as :mod:`pe_rlhf.algorithms.baselines.config_schema` for the RL baselines.
+one place for every field's default, type and rule, as :mod:`pe_rlhf.algorithms.baselines.config_schema` for the RL
+baselines.
 
 Families: ``offline`` (BC, CQL: gradient steps on recorded demonstrations, no env interaction; a metrics row every
 ``optim.updates_per_iteration`` updates, ``eval.every_updates`` / ``checkpoint.every_updates``), ``gail`` (the PPO

@@ -6,8 +6,8 @@ A recipe's ``train.py`` calls :func:`hydra_task` from its ``@hydra.main`` functi
 line (:mod:`pe_rlhf.runtime.recipe`: the flags ``--out``, ``--compare``, ``--resume``, Hydra's overrides, the
 one-line errors), with this family's schema (:data:`~pe_rlhf.algorithms.proxy_q.config_schema.PROXY_Q`), loader
 (:func:`load_run_config`: :func:`~pe_rlhf.algorithms.proxy_q.config.load_config`), finish
-(:func:`~pe_rlhf.algorithms.proxy_q.config.finish_config`) and training (:func:`run`). The baseline recipes plug theirs into
-the same command line (:mod:`pe_rlhf.algorithms.baselines.cli`).
+(:func:`~pe_rlhf.algorithms.proxy_q.config.finish_config`) and training (:func:`run`). The baseline recipes plug theirs
+into the same command line (:mod:`pe_rlhf.algorithms.baselines.cli`).
 
 Outputs in the run folder: ``config.yaml`` (resolved, with the method's registry name as ``algorithm:``),
 ``metrics.csv``, ``checkpoints/``, ``final_eval.json`` (with ``"algorithm"``), ``training_curves.png``,
@@ -37,7 +37,8 @@ from pe_rlhf.algorithms.proxy_q.trainer import train
 def main(argv: list[str] | None = None, *, config_path: str | Path | None = None,
          description: str | None = None) -> dict:
     """Run a recipe: ``config_path`` is its ``config.yaml`` (None: ``recipes/pe_rlhf/config.yaml``,
-    see :func:`~pe_rlhf.algorithms.proxy_q.config.load_config`); ``argv`` as on the command line (Hydra's flags aside)."""
+    see :func:`~pe_rlhf.algorithms.proxy_q.config.load_config`); ``argv`` as on the command line (Hydra's flags
+    aside)."""
     return recipe.main(argv, description=description, load=functools.partial(load_run_config, config_path=config_path),
                        train=run)
 
