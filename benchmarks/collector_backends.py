@@ -21,8 +21,8 @@ import time
 
 from pe_rlhf.runtime.config import driving_config
 from pe_rlhf.threads import torch_threads
-from pe_rlhf.training import builders
-from pe_rlhf.training.config import load_config
+from pe_rlhf.algorithms.proxy_q import builders
+from pe_rlhf.algorithms.proxy_q.config import load_config
 
 
 def time_backend(backend: str, workers: int, frames: int, frames_per_batch: int, profile: str) -> dict:

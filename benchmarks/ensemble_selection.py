@@ -36,7 +36,7 @@ from pe_rlhf.envs.torchrl_env import make_env, unwrap
 from pe_rlhf.evaluation.policies import make_policy
 from pe_rlhf.mentors import make_mentor
 from pe_rlhf.physics import IDMMobilPolicy, PhysicsConfig, SafetyForecastConfig, SafetyForecastValue
-from pe_rlhf.training.value_expert import load_value_expert, parse_value_source
+from pe_rlhf.algorithms.proxy_q.value_expert import load_value_expert, parse_value_source
 from pe_rlhf.transforms import HybridActionSelector, InterventionTransform
 
 

@@ -1,6 +1,6 @@
 """Frame-time jitter of human-paced training: updates in a learner thread vs inline, same run.
 
-Runs the recipe's training loop (:func:`pe_rlhf.training.trainer.train`: collector, replay buffer,
+Runs the recipe's training loop (:func:`pe_rlhf.algorithms.proxy_q.trainer.train`: collector, replay buffer,
 PERLHFLoss updates, logging) as a person would drive it, ``collector.realtime_hz`` = 10 with
 :class:`~pe_rlhf.transforms.RealtimePacing`, but with the simulated ``professional`` mentor in
 the person's place (no window is drawn). Each mode collects a short warm-up (``--warmup`` frames;
@@ -35,9 +35,9 @@ import torch
 
 from pe_rlhf.runtime.config import to_container
 from pe_rlhf.runtime.metrics_logger import MetricsLogger
-from pe_rlhf.training import builders
-from pe_rlhf.training.config import load_config
-from pe_rlhf.training.trainer import train
+from pe_rlhf.algorithms.proxy_q import builders
+from pe_rlhf.algorithms.proxy_q.config import load_config
+from pe_rlhf.algorithms.proxy_q.trainer import train
 from pe_rlhf.transforms import RealtimePacing
 
 MODES = {"async": "true", "sync": "false"}

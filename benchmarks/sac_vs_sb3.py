@@ -8,8 +8,8 @@ buffer), one gradient step per env step. Before ``--learning-starts`` both act u
 random (SB3's habit; ours through ``collector.init_random_frames``). The timed window is the ``--steps`` env
 steps after learning starts, each with its update:
 
-- ours: :class:`pe_rlhf.runtime.run.Run` over :class:`pe_rlhf.baselines.loop.BaselineLearner` as the recipe runs
-  it (Collector, ``frames_per_batch`` steps then as many updates, tracker, ``metrics.csv`` rows, progress bar), from the end of the iteration
+- ours: :class:`pe_rlhf.runtime.run.Run` over :class:`pe_rlhf.algorithms.baselines.loop.BaselineLearner` as the recipe
+  runs it (Collector, ``frames_per_batch`` steps then as many updates, tracker, ``metrics.csv`` rows, progress bar), from the end of the iteration
   at frame L to the end of the one at L + steps; no evaluation or checkpoint (the recipe's are periodic
   and would be the same for any learner). Acting runs on 1 thread, updates on ``--threads`` (the recipe's
   own choice, :mod:`pe_rlhf.threads`).
@@ -112,7 +112,7 @@ def window(total_s: float, collect_s: float, update_s: float, sim: tuple, sim0: 
 
 
 def recipe_config(args):
-    from pe_rlhf.baselines import load_baseline_config
+    from pe_rlhf.algorithms.baselines import load_baseline_config
 
     L, n = args.learning_starts, args.steps
     overrides = [f"seed={args.seed}", f"collector.total_frames={L + n}", f"collector.learning_starts={L}",
@@ -126,7 +126,7 @@ def recipe_config(args):
 def run_ours(cfg, seed: int, sim: SimTimer) -> dict:
     """The recipe's loop (:class:`~pe_rlhf.runtime.run.Run` over :class:`BaselineLearner`), timed from frame L
     to L + steps."""
-    from pe_rlhf.baselines.loop import BaselineLearner
+    from pe_rlhf.algorithms.baselines.loop import BaselineLearner
     from pe_rlhf.runtime.metrics_logger import MetricsLogger
     from pe_rlhf.runtime.run import Run
     from pe_rlhf.threads import torch_threads
@@ -301,7 +301,7 @@ def update_candidates(cfg) -> dict:
     (``optim.precision=bf16``), SB3's ``train(1)`` in fp32 and under bf16 autocast."""
     from stable_baselines3.common.logger import configure
 
-    from pe_rlhf.baselines.algorithms import SACLearner
+    from pe_rlhf.algorithms.baselines.algorithms import SACLearner
     from pe_rlhf.runtime.update import update
     from pe_rlhf.runtime.world import obs_dim
 

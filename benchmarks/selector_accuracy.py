@@ -41,8 +41,8 @@ from pe_rlhf.physics import IDMMobilPolicy, PhysicsConfig
 from pe_rlhf.runtime.checkpoint import find_checkpoint, load_checkpoint
 from pe_rlhf.runtime.config import driving_config
 from pe_rlhf.runtime.world import build_mentor
-from pe_rlhf.training.builders import build_physics, build_q_ensemble, epsilon_select
-from pe_rlhf.training.config import load_config
+from pe_rlhf.algorithms.proxy_q.builders import build_physics, build_q_ensemble, epsilon_select
+from pe_rlhf.algorithms.proxy_q.config import load_config
 
 
 def parse_scenes(text: str) -> list[int]:

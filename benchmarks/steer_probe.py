@@ -30,11 +30,11 @@ from pe_rlhf.envs.splits import parse_seeds
 from pe_rlhf.evaluation import TorchRLPolicyAdapter
 from pe_rlhf.evaluation.evaluate import run_episode
 from pe_rlhf.envs import make_gym_env
-from pe_rlhf.training import builders
+from pe_rlhf.algorithms.proxy_q import builders
 from pe_rlhf.runtime.checkpoint import load_checkpoint
-from pe_rlhf.training.config import load_config
-from pe_rlhf.training.model_builders import build_loss
-from pe_rlhf.training.trained_policy import run_world
+from pe_rlhf.algorithms.proxy_q.config import load_config
+from pe_rlhf.algorithms.proxy_q.model_builders import build_loss
+from pe_rlhf.algorithms.proxy_q.trained_policy import run_world
 
 
 def min_q(loss, observation: torch.Tensor, action: torch.Tensor) -> torch.Tensor:

@@ -27,7 +27,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from pe_rlhf.envs import make_gym_env
 from pe_rlhf.mentors import make_mentor
-from pe_rlhf.training.trained_policy import load_actor, run_world
+from pe_rlhf.algorithms.proxy_q.trained_policy import load_actor, run_world
 
 
 def _action(actor, obs, exploration) -> np.ndarray:

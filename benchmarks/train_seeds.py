@@ -97,7 +97,7 @@ def plot_takeover(runs: dict[int, Path], path: Path) -> None:
 def recipe_method(overrides: list[str]) -> str:
     """The method the overrides make of the recipe: PE-RLHF, HACO or HAIM-DRL (for the tables' labels)."""
     sys.path.insert(0, str(ROOT / "src"))
-    from pe_rlhf.training.config import load_config, method_name
+    from pe_rlhf.algorithms.proxy_q.config import load_config, method_name
 
     return method_name(load_config(None, ["profile=cpu", *overrides]))
 
@@ -158,8 +158,8 @@ def main() -> None:
     from pe_rlhf.envs import scene_seeds
     from pe_rlhf.evaluation import TorchRLPolicyAdapter, evaluate, make_policy
     from pe_rlhf.runtime.config import driving_config
-    from pe_rlhf.training.config import load_config
-    from pe_rlhf.training.trained_policy import load_actor
+    from pe_rlhf.algorithms.proxy_q.config import load_config
+    from pe_rlhf.algorithms.proxy_q.trained_policy import load_actor
 
     torch.set_num_threads(1)
     out = Path(args.out)

@@ -78,7 +78,7 @@ def test_sync_updater_asks_the_budget_before_each_round():
     from tensordict import TensorDict
     from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 
-    from pe_rlhf.training.background_updates import SyncUpdater
+    from pe_rlhf.algorithms.proxy_q.background_updates import SyncUpdater
 
     asked, seen = [], []
 

@@ -1,13 +1,13 @@
-"""CQL baseline recipe (config.yaml beside this file; everything else in pe_rlhf.baselines).
+"""CQL baseline recipe (config.yaml beside this file; everything else in pe_rlhf.algorithms.baselines).
 
     python recipes/cql/train.py [profile=paper|cpu|smoke] [group.key=value ...] [--out DIR] [--compare idm-mobil]
     python recipes/cql/train.py --resume DIR      # continue a run from its last checkpoint
     python recipes/cql/train.py profile=smoke --cfg job   # print the composed config, run nothing
 
 TorchRL's layout: ``config.yaml`` beside this script (a Hydra config over the structured config
-:class:`~pe_rlhf.baselines.imitation_schema.CQLConfig`); the ``@hydra.main`` function hands the composed config to
-:func:`pe_rlhf.baselines.cli.hydra_task`. A bad value prints one line ``error: ...`` and exits 2; ``PE_RLHF_DEBUG=1``
-shows the traceback.
+:class:`~pe_rlhf.algorithms.baselines.imitation_schema.CQLConfig`); the ``@hydra.main`` function hands the composed
+config to :func:`pe_rlhf.algorithms.baselines.cli.hydra_task`. A bad value prints one line ``error: ...`` and exits 2;
+``PE_RLHF_DEBUG=1`` shows the traceback.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig
 
-from pe_rlhf.baselines import cli
+from pe_rlhf.algorithms.baselines import cli
 
 METHOD = "cql"
 CONFIG = Path(__file__).with_name("config.yaml")

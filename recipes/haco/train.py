@@ -18,7 +18,7 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig
 
-from pe_rlhf.training import recipe
+from pe_rlhf.algorithms.proxy_q import recipe
 
 CONFIG = Path(__file__).with_name("config.yaml")
 

@@ -5,9 +5,10 @@
     python recipes/pe_rlhf/train.py profile=smoke --cfg job   # print the composed config, run nothing
 
 TorchRL's layout: ``config.yaml`` beside this script (a Hydra config over the structured config
-:class:`~pe_rlhf.training.config_schema.RecipeConfig`), and everything reusable in ``pe_rlhf.training``; the
-``@hydra.main`` function hands the composed config to :func:`pe_rlhf.training.recipe.hydra_task`. A bad value
-prints one line ``error: ...`` and exits 2; ``PE_RLHF_DEBUG=1`` shows the traceback.
+:class:`~pe_rlhf.algorithms.proxy_q.config_schema.RecipeConfig`), and everything reusable in
+``pe_rlhf.algorithms.proxy_q``; the ``@hydra.main`` function hands the composed config to
+:func:`pe_rlhf.algorithms.proxy_q.recipe.hydra_task`. A bad value prints one line ``error: ...`` and exits 2;
+``PE_RLHF_DEBUG=1`` shows the traceback.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig
 
-from pe_rlhf.training import recipe
+from pe_rlhf.algorithms.proxy_q import recipe
 
 CONFIG = Path(__file__).with_name("config.yaml")
 

@@ -11,8 +11,8 @@ cores idle, 2 spinning threads took 24 ms, 1 thread 30 ms. ``OMP_WAIT_POLICY=PAS
 barriers) avoids the collapse (36 ms busy) but costs the idle case (38 ms: a wake-up per parallel
 region). ``import pe_rlhf`` still sets it (unless ``OMP_WAIT_POLICY`` or ``GOMP_SPINCOUNT`` is set): without it
 the learner thread of ``optim.async_updates`` and the acting thread spin against each other and a 50 Hz
-paced run misses its frames (``tests/training/test_realtime.py``). Set ``GOMP_SPINCOUNT=300000`` for the faster idle
-updates of synchronous runs.
+paced run misses its frames (``tests/algorithms/proxy_q/test_realtime.py``). Set ``GOMP_SPINCOUNT=300000`` for the
+faster idle updates of synchronous runs.
 """
 
 from __future__ import annotations

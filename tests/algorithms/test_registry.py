@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from pe_rlhf.algorithms import ALGORITHMS, EVALUATE, PROXY_Q, algorithm, recipe_names
-from pe_rlhf.baselines import METHODS
+from pe_rlhf.algorithms.baselines import METHODS
 from pe_rlhf.apps.sweeps.methods import builtin_methods
 
 RECIPES = Path(__file__).resolve().parents[2] / "recipes"
@@ -46,7 +46,7 @@ def test_sweeps_name_exactly_the_registered_methods():
 
 @pytest.mark.parametrize("name, expected", [("pe-rlhf", "PE-RLHF"), ("haco", "HACO"), ("haim-drl", "HAIM-DRL")])
 def test_proxy_q_overrides_make_the_method_they_name(name, expected):
-    from pe_rlhf.training.config import load_config, method_name
+    from pe_rlhf.algorithms.proxy_q.config import load_config, method_name
 
     entry = algorithm(name)
     assert entry.family == PROXY_Q and entry.display == expected
@@ -56,8 +56,8 @@ def test_proxy_q_overrides_make_the_method_they_name(name, expected):
 
 def test_the_name_a_run_records_is_its_registry_name():
     """What a run folder records (``algorithm``) is the key it is registered under, for every training method."""
-    from pe_rlhf.baselines.config import algorithm_name as baseline_name
-    from pe_rlhf.training.config import PROXY_Q_ALGORITHMS, algorithm_name, load_config
+    from pe_rlhf.algorithms.baselines.config import algorithm_name as baseline_name
+    from pe_rlhf.algorithms.proxy_q.config import PROXY_Q_ALGORITHMS, algorithm_name, load_config
 
     proxy_q = [a for a in ALGORITHMS.values() if a.family == PROXY_Q]
     assert tuple(a.name for a in proxy_q) == PROXY_Q_ALGORITHMS

@@ -13,7 +13,7 @@ from pe_rlhf.envs import make_gym_env
 from pe_rlhf.physics import IDMMobilPolicy, PhysicsConfig
 from pe_rlhf.runtime.config import driving_config
 from pe_rlhf.runtime.world import build_mentor
-from pe_rlhf.training.builders import build_physics
+from pe_rlhf.algorithms.proxy_q.builders import build_physics
 
 
 def test_selector_accuracy_on_a_smoke_run(tmp_path):

@@ -58,8 +58,8 @@ def test_observation_appends_the_summary_and_keeps_the_rest():
 
 def test_config_field_is_validated_and_sizes_the_networks():
     from pe_rlhf.runtime.config_rules import ConfigError
-    from pe_rlhf.training import builders
-    from pe_rlhf.training.config import load_config
+    from pe_rlhf.algorithms.proxy_q import builders
+    from pe_rlhf.algorithms.proxy_q.config import load_config
 
     with pytest.raises(ValueError, match="lane_features"):
         DrivingConfig(lane_features="yes")
@@ -77,9 +77,9 @@ def test_evaluate_checkpoint_uses_the_runs_world(tmp_path):
     from omegaconf import OmegaConf
 
     from pe_rlhf.apps.cli import main
-    from pe_rlhf.training import builders
-    from pe_rlhf.training.config import load_config
-    from pe_rlhf.training.trained_policy import run_world
+    from pe_rlhf.algorithms.proxy_q import builders
+    from pe_rlhf.algorithms.proxy_q.config import load_config
+    from pe_rlhf.algorithms.proxy_q.trained_policy import run_world
 
     cfg = load_config(None, ["env.lane_features=true", "env.horizon=20", "loss.hidden=[8,8]"])
     (tmp_path / "config.yaml").write_text(OmegaConf.to_yaml(cfg))

@@ -12,7 +12,7 @@ from pe_rlhf.envs import make_gym_env, scene_seeds
 from pe_rlhf.mentors import CollapsingMentor, make_mentor
 from pe_rlhf.mentors.simulated import PRESETS, SimulatedMentor
 from pe_rlhf.runtime.config_rules import ConfigError
-from pe_rlhf.training.config import load_config
+from pe_rlhf.algorithms.proxy_q.config import load_config
 
 SWITCH = 6
 

@@ -8,7 +8,7 @@ import pytest
 
 from pe_rlhf.runtime.config_rules import ConfigError
 from pe_rlhf.runtime.world import build_mentor
-from pe_rlhf.training.config import load_config
+from pe_rlhf.algorithms.proxy_q.config import load_config
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
 

@@ -131,9 +131,9 @@ def test_bf16_sac_learns_a_bandit_as_well_as_fp32():
 
 @pytest.mark.parametrize("loader", ["pe_rlhf", "sac_rs", "sac_lag"])
 def test_recipe_configs_take_precision_and_name_a_bad_value(loader):
-    from pe_rlhf.baselines import load_baseline_config
+    from pe_rlhf.algorithms.baselines import load_baseline_config
     from pe_rlhf.runtime.config_rules import ConfigError
-    from pe_rlhf.training.config import load_config
+    from pe_rlhf.algorithms.proxy_q.config import load_config
 
     load = (lambda o: load_config(None, o)) if loader == "pe_rlhf" else (lambda o: load_baseline_config(loader, overrides=o))
     assert load([]).optim.precision == "fp32"

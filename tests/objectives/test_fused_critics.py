@@ -161,8 +161,8 @@ def test_only_recognised_critics_on_a_flat_batch_outside_autocast_are_fused():
 
 def test_the_recipe_field_reaches_the_loss():
     """``loss.fused_critics`` (default true) in the recipe config picks the path of the loss it builds."""
-    from pe_rlhf.training import builders
-    from pe_rlhf.training.config import load_config
+    from pe_rlhf.algorithms.proxy_q import builders
+    from pe_rlhf.algorithms.proxy_q.config import load_config
 
     for value, expected in (("true", True), ("false", False)):
         cfg = load_config(overrides=["profile=smoke", f"loss.fused_critics={value}"])

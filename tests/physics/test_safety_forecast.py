@@ -8,9 +8,9 @@ import pytest
 import torch
 
 from pe_rlhf.physics import SafetyForecastConfig, SafetyForecastValue, time_to_failure
-from pe_rlhf.training.builders import build_q_ensemble, build_selector
-from pe_rlhf.training.config import load_config
-from pe_rlhf.training.value_expert import parse_value_source
+from pe_rlhf.algorithms.proxy_q.builders import build_q_ensemble, build_selector
+from pe_rlhf.algorithms.proxy_q.config import load_config
+from pe_rlhf.algorithms.proxy_q.value_expert import parse_value_source
 from pe_rlhf.transforms import HybridActionSelector
 from _scenes import add_obstacle, straight_env
 

@@ -47,9 +47,9 @@ def checkpoint_contents(ckpt: Path) -> dict:
     """Everything a checkpoint holds, loaded: tensors, RNG, state, the replay buffers' contents."""
     import torch
 
-    from pe_rlhf.training.builders import build_replay_buffer
+    from pe_rlhf.algorithms.proxy_q.builders import build_replay_buffer
     from pe_rlhf.runtime.checkpoint import load_checkpoint
-    from pe_rlhf.training.config import load_config
+    from pe_rlhf.algorithms.proxy_q.config import load_config
 
     cfg = load_config(ckpt.parents[1] / "config.yaml", apply_profile=False)
     buffers = {"replay": build_replay_buffer(cfg), "warmup": build_replay_buffer(cfg)}

@@ -1,7 +1,7 @@
 """Bad input fails at the start with the field, the value and what is allowed; checkpoints and datasets
 from another env config or version are refused with the mismatch named.
 
-(``tests/training/test_training_config.py`` checks a rule for every config field; here are the issue's cases
+(``tests/algorithms/proxy_q/test_training_config.py`` checks a rule for every config field; here are the issue's cases
 end to end, through the recipe's command line.)"""
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from tensordict import TensorDict
 
 from pe_rlhf.runtime.config_rules import ConfigError
 from pe_rlhf.runtime.world import obs_dim
-from pe_rlhf.training.config import load_config
+from pe_rlhf.algorithms.proxy_q.config import load_config
 
 pytestmark = [pytest.mark.usefixtures("one_thread"), pytest.mark.filterwarnings("ignore::FutureWarning")]
 
@@ -49,7 +49,7 @@ def test_observation_size_follows_the_env_config():
     """Networks are built for the configured world's observation (10 + lidar beams), not a fixed 250."""
     from pe_rlhf.envs.torchrl_env import make_env
     from pe_rlhf.runtime.config import driving_config
-    from pe_rlhf.training import builders
+    from pe_rlhf.algorithms.proxy_q import builders
 
     # the packaged value expert reads the default 270-float observation: a fitted ensemble follows any world
     cfg = load_config(overrides=["profile=smoke", "env.lidar_beams=60", "env.lane_features=false",

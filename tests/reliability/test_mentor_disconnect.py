@@ -17,8 +17,8 @@ from pe_rlhf.mentors.human import HumanMentor
 from pe_rlhf.runtime.checkpoint import load_checkpoint
 from pe_rlhf.runtime.config_rules import ConfigError
 from pe_rlhf.runtime.world import build_mentor
-from pe_rlhf.training import builders
-from pe_rlhf.training.config import load_config
+from pe_rlhf.algorithms.proxy_q import builders
+from pe_rlhf.algorithms.proxy_q.config import load_config
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 AGENT = np.array([0.1, 0.3], dtype=np.float32)

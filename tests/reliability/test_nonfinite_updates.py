@@ -13,8 +13,8 @@ from pe_rlhf.objectives import PERLHFLoss
 from pe_rlhf.runtime.checkpoint import find_checkpoint, load_checkpoint
 from pe_rlhf.runtime.update import nonfinite_parameters, update
 from pe_rlhf.runtime.world import obs_dim
-from pe_rlhf.training import builders
-from pe_rlhf.training.config import load_config
+from pe_rlhf.algorithms.proxy_q import builders
+from pe_rlhf.algorithms.proxy_q.config import load_config
 
 pytestmark = [pytest.mark.usefixtures("one_thread"), pytest.mark.filterwarnings("ignore::UserWarning")]
 

@@ -27,7 +27,7 @@ from torchrl.envs.utils import RandomPolicy
 from pe_rlhf.runtime.checkpoint import CheckpointError, find_checkpoint
 from pe_rlhf.runtime.episode_journal import PendingEpisodesJournal
 from pe_rlhf.runtime.journal import BatchJournal
-from pe_rlhf.training.steps import batch_metrics
+from pe_rlhf.algorithms.proxy_q.steps import batch_metrics
 
 pytestmark = [pytest.mark.usefixtures("one_thread"), pytest.mark.filterwarnings("ignore::UserWarning")]
 

@@ -60,8 +60,8 @@ def test_trained_actor_file_is_refused(tmp_path):
     from _runs import TINY
 
     from pe_rlhf.runtime.config import save_config
-    from pe_rlhf.training.config import load_config
-    from pe_rlhf.training.trained_policy import load_actor
+    from pe_rlhf.algorithms.proxy_q.config import load_config
+    from pe_rlhf.algorithms.proxy_q.trained_policy import load_actor
 
     save_config(load_config(overrides=TINY), tmp_path / "config.yaml")
     (tmp_path / "actor.pt").write_bytes(evil_bytes(tmp_path / "pwned"))
@@ -171,7 +171,7 @@ def test_wandb_defaults_to_offline():
     import inspect
 
     from pe_rlhf.runtime.metrics_logger import MetricsLogger
-    from pe_rlhf.training.config_schema import defaults
+    from pe_rlhf.algorithms.proxy_q.config_schema import defaults
 
     assert defaults()["logger"]["wandb"] is False and defaults()["logger"]["wandb_mode"] == "offline"
     assert inspect.signature(MetricsLogger).parameters["wandb_mode"].default == "offline"

@@ -14,7 +14,7 @@ from pe_rlhf.envs import make_gym_env
 from pe_rlhf.envs.driving_env import MAX_CONSECUTIVE_SIM_ERRORS, DrivingEnv, SimulatorError
 from pe_rlhf.envs.torchrl_env import make_env, unwrap
 from pe_rlhf.mentors import make_mentor
-from pe_rlhf.training.steps import batch_metrics
+from pe_rlhf.algorithms.proxy_q.steps import batch_metrics
 from pe_rlhf.transforms import InterventionTransform
 
 CONFIG = {"split": "train", "horizon": 40, "min_blocks": 2, "max_blocks": 2}

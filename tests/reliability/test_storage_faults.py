@@ -1,7 +1,7 @@
 """Checkpoint writes interrupted by SIGKILL or a full disk, truncated or corrupt files: the previous
 checkpoint stays valid, damage is reported with the file named, and nothing collected is lost.
 
-(``tests/training/test_checkpoint.py`` injects the same faults into each file of one ``save_checkpoint``;
+(``tests/runtime/test_checkpoint.py`` injects the same faults into each file of one ``save_checkpoint``;
 these tests do it to a real writer process and to a training run.)"""
 
 from __future__ import annotations

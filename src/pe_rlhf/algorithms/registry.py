@@ -6,9 +6,10 @@ turn the recipe into the method (HACO = the PE-RLHF recipe without physics and s
 display name, and which config key a mentor is set with (None: the method has no mentor).
 
 Families:
-- ``proxy_q``: the reward-free proxy-Q learners (PE-RLHF, HACO, HAIM-DRL), run by :func:`pe_rlhf.training.recipe.main`;
+- ``proxy_q``: the reward-free proxy-Q learners (PE-RLHF, HACO, HAIM-DRL), run by
+  :func:`pe_rlhf.algorithms.proxy_q.recipe.main`;
 - ``sac``, ``ppo``, ``cpo``: reward-trained RL baselines, ``offline`` (BC, CQL), ``gail``, ``hil`` (HG-DAgger, IWR),
-  run by :func:`pe_rlhf.baselines.main`;
+  run by :func:`pe_rlhf.algorithms.baselines.main`;
 - ``evaluate``: a fixed policy (IDM-MOBIL), scored on the recipe's test scenes.
 """
 
@@ -17,8 +18,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from pe_rlhf.algorithms.names import EVALUATE, PROXY_Q, PROXY_Q_RECIPES
-from pe_rlhf.baselines.config import METHODS as BASELINE_METHODS
-from pe_rlhf.baselines.config import algorithm_name as baseline_algorithm_name
+from pe_rlhf.algorithms.baselines.config import METHODS as BASELINE_METHODS
+from pe_rlhf.algorithms.baselines.config import algorithm_name as baseline_algorithm_name
 
 
 @dataclass(frozen=True)

@@ -83,7 +83,7 @@ def run_evaluate(args: argparse.Namespace, parser: argparse.ArgumentParser) -> i
         config = parse_config_overrides(args.config_override)
         if args.checkpoint:
             from pe_rlhf.evaluation import TorchRLPolicyAdapter
-            from pe_rlhf.training.trained_policy import load_run_actor, run_world
+            from pe_rlhf.algorithms.proxy_q.trained_policy import load_run_actor, run_world
 
             # the run's own world (observation size, traffic, ...), then the command line's overrides
             world = dataclasses.replace(run_world(args.checkpoint), split=args.split)

@@ -13,4 +13,4 @@
   :mod:`~pe_rlhf.runtime.metrics_logger`), learning curves (:mod:`~pe_rlhf.runtime.plots`), the episode GIF
   (:mod:`~pe_rlhf.runtime.video`).
 
-It imports no method: ``training`` (the proxy-Q learner), ``baselines`` and ``algorithms`` sit above it."""
+It imports no method: :mod:`pe_rlhf.algorithms` (the registry, the baselines, the proxy-Q learner) sits above it."""

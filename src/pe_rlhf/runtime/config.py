@@ -1,9 +1,9 @@
 """The config pieces every recipe shares: where recipes are, a run's saved ``config.yaml``, the env and mentor checks.
 
-Each family composes and validates its own config (:mod:`pe_rlhf.training.config` for PE-RLHF, HACO and HAIM-DRL,
-:mod:`pe_rlhf.baselines.config` for the baselines), over :mod:`pe_rlhf.runtime.config_compose`; both read and write a
-run folder's ``config.yaml`` here (:func:`save_config`, :func:`read_config_file`: the method's registry name under
-:data:`ALGORITHM_KEY`), check the open groups ``env`` (:func:`check_env`: any
+Each family composes and validates its own config (:mod:`pe_rlhf.algorithms.proxy_q.config` for PE-RLHF, HACO and
+HAIM-DRL, :mod:`pe_rlhf.algorithms.baselines.config` for the baselines), over :mod:`pe_rlhf.runtime.config_compose`;
+both read and write a run folder's ``config.yaml`` here (:func:`save_config`, :func:`read_config_file`: the method's
+registry name under :data:`ALGORITHM_KEY`), check the open groups ``env`` (:func:`check_env`: any
 :class:`~pe_rlhf.envs.config.DrivingConfig` field) and ``mentor.kwargs`` (:func:`check_mentor_kwargs`), and build
 the world's :class:`~pe_rlhf.envs.config.DrivingConfig` (:func:`driving_config`). Every error is a
 :class:`~pe_rlhf.runtime.config_rules.ConfigError` naming the dotted field.

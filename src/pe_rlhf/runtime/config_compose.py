@@ -3,13 +3,13 @@
 A recipe's ``config.yaml`` is a Hydra primary config (``recipes/pe_rlhf/config.yaml``)::
 
     defaults:
-      - pe_rlhf_schema     # the structured config: every field's default (pe_rlhf.training.config_schema)
+      - pe_rlhf_schema     # the structured config: every field's default (pe_rlhf.algorithms.proxy_q.config_schema)
       - _self_             # this file's values
-      - profile: paper     # a config group: paper | cpu | quick | smoke (pe_rlhf.training.config_profiles)
+      - profile: paper     # a config group: paper | cpu | quick | smoke (pe_rlhf.algorithms.proxy_q.config_profiles)
 
 A :class:`RecipeSchema` names a family's structured config and its profiles: PE-RLHF, HACO and HAIM-DRL share
-:data:`~pe_rlhf.training.config_schema.PROXY_Q`; each baseline has its own (``sac_lag_schema``, ...:
-:mod:`pe_rlhf.baselines.config`). Every function here takes the schema it composes; none knows a method.
+:data:`~pe_rlhf.algorithms.proxy_q.config_schema.PROXY_Q`; each baseline has its own (``sac_lag_schema``, ...:
+:mod:`pe_rlhf.algorithms.baselines.config`). Every function here takes the schema it composes; none knows a method.
 :func:`store_recipe_configs` registers a schema and its ``profile`` group in Hydra's ConfigStore, with the Hydra
 settings that keep a run where it was started: no change of working directory, no ``outputs/``, ``multirun/`` or
 ``.hydra/`` folder, no log file (``hydra.run.dir: .``, ``hydra.sweep.dir: .``, ``hydra.output_subdir: null``,

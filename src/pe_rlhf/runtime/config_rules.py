@@ -2,8 +2,8 @@
 
 A rule's message is the "what is allowed" half of a :class:`ConfigError` (``optim.lr=-1 is invalid: must be a finite
 number > 0``); :func:`invalid_value` builds the whole error. The fields that use them are declared, with their
-defaults, in each family's structured config (:mod:`pe_rlhf.training.config_schema` for the proxy-Q recipes,
-:mod:`pe_rlhf.baselines.config_schema` and :mod:`pe_rlhf.baselines.imitation_schema`), through
+defaults, in each family's structured config (:mod:`pe_rlhf.algorithms.proxy_q.config_schema` for the proxy-Q recipes,
+:mod:`pe_rlhf.algorithms.baselines.config_schema` and :mod:`pe_rlhf.algorithms.baselines.imitation_schema`), through
 :mod:`pe_rlhf.runtime.config_schema`; a rule of one family's fields alone lives in that family's schema.
 """
 

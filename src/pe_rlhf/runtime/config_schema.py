@@ -1,10 +1,11 @@
 """What every recipe's structured config is built of: a field with its default and rule, an open group, the
 ``logger`` group.
 
-Each family declares its config as dataclasses of :func:`knob` fields (:mod:`pe_rlhf.training.config_schema` for
-PE-RLHF, HACO and HAIM-DRL; :mod:`pe_rlhf.baselines.config_schema` and :mod:`pe_rlhf.baselines.imitation_schema`
-for the baselines), each field's rule from :mod:`pe_rlhf.runtime.config_rules`; :class:`LoggerConfig` is the
-``logger`` group they all share (what :class:`~pe_rlhf.runtime.metrics_logger.MetricsLogger` takes).
+Each family declares its config as dataclasses of :func:`knob` fields (:mod:`pe_rlhf.algorithms.proxy_q.config_schema`
+for PE-RLHF, HACO and HAIM-DRL; :mod:`pe_rlhf.algorithms.baselines.config_schema` and
+:mod:`pe_rlhf.algorithms.baselines.imitation_schema` for the baselines), each field's rule from
+:mod:`pe_rlhf.runtime.config_rules`; :class:`LoggerConfig` is the ``logger`` group they all share (what
+:class:`~pe_rlhf.runtime.metrics_logger.MetricsLogger` takes).
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ def knob(default: Any, rule: Rule) -> Any:
 
 
 def open_group(default: dict[str, Any], rule: Rule | None = None) -> Any:
-    """A free-form group (any key; checked by name in :func:`~pe_rlhf.training.config.validate_config`), with
+    """A free-form group (any key; checked by name in :func:`~pe_rlhf.algorithms.proxy_q.config.validate_config`), with
     ``rule`` for the group as a whole if given."""
     metadata = {"open": True} if rule is None else {"open": True, "rule": rule}
     return field(default_factory=lambda: copy.deepcopy(default), metadata=metadata)

@@ -13,8 +13,8 @@ Hydra neither changes the working directory nor writes an output folder or log
 
 What a family plugs in: its :class:`~pe_rlhf.runtime.config_compose.RecipeSchema` (``schema``), ``load`` (the run's
 validated config from the flags and the overrides), ``finish`` (what follows Hydra's composition) and ``train`` (the
-run, its outputs written, :func:`report_final` printed): the proxy-Q recipes' in :mod:`pe_rlhf.training.recipe`, the
-baselines' in :mod:`pe_rlhf.baselines.cli`.
+run, its outputs written, :func:`report_final` printed): the proxy-Q recipes' in
+:mod:`pe_rlhf.algorithms.proxy_q.recipe`, the baselines' in :mod:`pe_rlhf.algorithms.baselines.cli`.
 
 Errors, for every recipe (the baselines' ``train.py`` too): a bad config value, file or override (a
 :class:`~pe_rlhf.runtime.config_rules.ConfigError`; the config is composed and checked before anything is built) or a

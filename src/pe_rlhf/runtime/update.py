@@ -1,8 +1,8 @@
 """One gradient step of any method's TorchRL loss: every ``loss_*`` term, per-optimizer clipping, the target update.
 
 The learners of every method call :func:`update` on each replay (or demonstration) sample: the proxy-Q learner
-(:mod:`pe_rlhf.training`) and the baselines (:mod:`pe_rlhf.baselines`). A non-finite loss term, gradient norm or
-parameter stops the run with a ``FloatingPointError`` that names it (:func:`nonfinite_parameters`).
+(:mod:`pe_rlhf.algorithms.proxy_q`) and the baselines (:mod:`pe_rlhf.algorithms.baselines`). A non-finite loss term,
+gradient norm or parameter stops the run with a ``FloatingPointError`` that names it (:func:`nonfinite_parameters`).
 """
 
 from __future__ import annotations

@@ -1,8 +1,8 @@
 """The world a recipe config describes, as every method builds it: the observation width and the mentor.
 
 Any recipe config with an ``env`` group (:func:`~pe_rlhf.runtime.config.driving_config`) and a ``mentor`` group
-(``name``, ``seed``, ``kwargs``) will do: the proxy-Q recipes' (:mod:`pe_rlhf.training.builders` builds the rest of
-their env, collector and learner) and the baselines'.
+(``name``, ``seed``, ``kwargs``) will do: the proxy-Q recipes' (:mod:`pe_rlhf.algorithms.proxy_q.builders` builds the
+rest of their env, collector and learner) and the baselines'.
 """
 
 from __future__ import annotations

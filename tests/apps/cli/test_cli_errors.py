@@ -61,7 +61,7 @@ def test_recipe_debug_env_var_shows_the_traceback():
 def test_negative_epsilon_select_is_accepted_and_the_message_states_the_range():
     """A negative ``epsilon_select`` is physics as a veto (kept valid); the rule says what each sign does."""
     from pe_rlhf.runtime.config_rules import ConfigError
-    from pe_rlhf.training.config import load_config
+    from pe_rlhf.algorithms.proxy_q.config import load_config
 
     assert load_config(overrides=["selector.epsilon_select=-1"]).selector.epsilon_select == -1
     with pytest.raises(ConfigError) as info:
@@ -90,9 +90,9 @@ def test_every_recipe_script_reports_a_config_error_in_one_line(recipe, tmp_path
 
 def test_recipe_main_called_as_a_function_still_raises():
     """Tests, sweeps and notebooks call ``main(argv)``: they get the ConfigError, not an exit."""
-    from pe_rlhf.baselines import main as baseline_main
+    from pe_rlhf.algorithms.baselines import main as baseline_main
     from pe_rlhf.runtime.config_rules import ConfigError
-    from pe_rlhf.training import recipe
+    from pe_rlhf.algorithms.proxy_q import recipe
 
     with pytest.raises(ConfigError, match="optim.lr='abc'"):
         recipe.main(["optim.lr=abc"])

@@ -364,8 +364,8 @@ def test_learning_curve_mean_and_band_over_seeds(haco_dir):
 def smoke_runs(tmp_path_factory) -> Path:
     """``runs/pe/seed_{0,1}`` (PE-RLHF), ``runs/haco/seed_0`` and ``runs/bc`` from the real recipes' smoke
     profiles with tiny budgets (once per module)."""
-    from pe_rlhf.baselines import main as baseline_main
-    from pe_rlhf.training import recipe
+    from pe_rlhf.algorithms.baselines import main as baseline_main
+    from pe_rlhf.algorithms.proxy_q import recipe
 
     root = tmp_path_factory.mktemp("runs")
     tiny = ["profile=smoke", "eval.video=false", "collector.total_frames=200"]

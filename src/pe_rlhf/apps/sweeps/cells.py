@@ -106,7 +106,7 @@ def check_cell_configs(cells: list[Cell]) -> None:
 def _load_config(cell: Cell):
     recipe = cell.method.recipe
     if recipe in (*PROXY_Q_RECIPES, "evaluate"):
-        from pe_rlhf.training.config import load_config
+        from pe_rlhf.algorithms.proxy_q.config import load_config
 
         cfg = load_config(proxy_q_config_path("pe_rlhf" if recipe == "evaluate" else recipe), cell.overrides)
         _build_mentor(cfg)
@@ -117,7 +117,7 @@ def _load_config(cell: Cell):
                 raise ValueError(f"policy {cell.method.policy!r} is not registered; "
                                  f"allowed: {sorted(registered_policies())}")
         return cfg
-    from pe_rlhf.baselines.config import load_baseline_config
+    from pe_rlhf.algorithms.baselines.config import load_baseline_config
 
     cfg = load_baseline_config(recipe, overrides=cell.overrides)
     if "mentor" in cfg:

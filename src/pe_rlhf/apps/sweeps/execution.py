@@ -57,13 +57,13 @@ def _output_to(path: Path):
 
 def _run_recipe(recipe: str, policy: str | None, argv: list[str], directory: Path) -> None:
     if recipe in PROXY_Q_RECIPES:
-        from pe_rlhf.training import recipe as proxy_q
+        from pe_rlhf.algorithms.proxy_q import recipe as proxy_q
 
         proxy_q.main(argv, config_path=proxy_q_config_path(recipe))
     elif recipe == "evaluate":
         _evaluate_only(policy, argv, directory)
     else:
-        from pe_rlhf.baselines import main as baseline_main
+        from pe_rlhf.algorithms.baselines import main as baseline_main
 
         baseline_main(recipe, argv)
 
@@ -74,7 +74,7 @@ def _evaluate_only(policy: str, argv: list[str], directory: Path) -> None:
     from pe_rlhf.evaluation import write_json
     from pe_rlhf.runtime.config import save_config
     from pe_rlhf.runtime.recipe import evaluate_reference
-    from pe_rlhf.training.config import load_config
+    from pe_rlhf.algorithms.proxy_q.config import load_config
 
     overrides = argv[: argv.index("--out")]
     cfg = load_config(None, overrides)

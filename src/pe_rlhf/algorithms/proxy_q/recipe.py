@@ -1,0 +1,85 @@
+"""The proxy-Q recipes' entry point (``recipes/pe_rlhf``, ``recipes/haco``, ``recipes/haim_drl``): their config
+composed and checked, the proxy-Q learner trained, the outputs written, the summary printed.
+
+A recipe's ``train.py`` calls :func:`hydra_task` from its ``@hydra.main`` function, :func:`run_script` as its
+``__main__`` and :func:`main` as the command line as a function (tests, ``pe-rlhf sweep``): every recipe's command
+line (:mod:`pe_rlhf.runtime.recipe`: the flags ``--out``, ``--compare``, ``--resume``, Hydra's overrides, the
+one-line errors), with this family's schema (:data:`~pe_rlhf.algorithms.proxy_q.config_schema.PROXY_Q`), loader
+(:func:`load_run_config`: :func:`~pe_rlhf.algorithms.proxy_q.config.load_config`), finish
+(:func:`~pe_rlhf.algorithms.proxy_q.config.finish_config`) and training (:func:`run`). The baseline recipes plug theirs
+into the same command line (:mod:`pe_rlhf.algorithms.baselines.cli`).
+
+Outputs in the run folder: ``config.yaml`` (resolved, with the method's registry name as ``algorithm:``),
+``metrics.csv``, ``checkpoints/``, ``final_eval.json`` (with ``"algorithm"``), ``training_curves.png``,
+``actor.pt``, ``test_episode.gif`` (with ``eval.video``) and ``reference_<policy>.json`` (with ``--compare``).
+"""
+
+from __future__ import annotations
+
+import functools
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+from omegaconf import DictConfig
+
+from pe_rlhf.evaluation import write_json
+from pe_rlhf.runtime import recipe
+from pe_rlhf.runtime.config import save_config, to_container
+from pe_rlhf.runtime.metrics_logger import MetricsLogger
+from pe_rlhf.runtime.plots import plot_learning_curves
+from pe_rlhf.runtime.recipe import RunOptions, report_final
+from pe_rlhf.algorithms.proxy_q.config import algorithm_name, finish_config, load_config, method_name
+from pe_rlhf.algorithms.proxy_q.config_schema import PROXY_Q
+from pe_rlhf.algorithms.proxy_q.trainer import train
+
+
+def main(argv: list[str] | None = None, *, config_path: str | Path | None = None,
+         description: str | None = None) -> dict:
+    """Run a recipe: ``config_path`` is its ``config.yaml`` (None: ``recipes/pe_rlhf/config.yaml``,
+    see :func:`~pe_rlhf.algorithms.proxy_q.config.load_config`); ``argv`` as on the command line (Hydra's flags
+    aside)."""
+    return recipe.main(argv, description=description, load=functools.partial(load_run_config, config_path=config_path),
+                       train=run)
+
+
+def run_script(task: Callable[[], object], config_path: str | Path) -> None:
+    """A recipe script's ``__main__`` (:func:`pe_rlhf.runtime.recipe.run_script` with the proxy-Q schema)."""
+    recipe.run_script(task, schema=PROXY_Q, load=functools.partial(load_run_config, config_path=config_path),
+                      train=run)
+
+
+def hydra_task(cfg: DictConfig) -> dict:
+    """The body of a recipe's ``@hydra.main`` function: ``mentor.name=human``'s defaults and every rule
+    (:func:`~pe_rlhf.algorithms.proxy_q.config.finish_config`), then :func:`run`."""
+    return recipe.hydra_task(cfg, finish=finish_config, train=run)
+
+
+def load_run_config(options: RunOptions, overrides: list[str], config_path: str | Path | None) -> DictConfig:
+    """The run's config: with ``--resume``, the run folder's ``config.yaml`` (composed over the schema, without its
+    profile) and ``overrides``; else the recipe's ``config.yaml`` composed with them."""
+    if options.resume:
+        return load_config(Path(options.resume) / "config.yaml", overrides=overrides, apply_profile=False)
+    return load_config(config_path, overrides=overrides)
+
+
+def run(cfg: DictConfig, options: RunOptions = RunOptions()) -> dict:
+    """Train a validated ``cfg`` into ``options.out`` (or continue the run in ``options.resume``), write the
+    outputs, print the final table."""
+    method = method_name(cfg)
+    if options.resume:
+        out = Path(options.resume)
+    else:
+        out = Path(options.out or cfg.logger.out_dir or f"runs/{method.lower()}-{time.strftime('%Y%m%d-%H%M%S')}")
+        out.mkdir(parents=True, exist_ok=True)
+        save_config(cfg, out / "config.yaml", algorithm_name(cfg))
+    resume = bool(options.resume)
+    with MetricsLogger(out, csv=bool(cfg.logger.csv), wandb=bool(cfg.logger.wandb), wandb_mode=str(cfg.logger.wandb_mode),
+                       wandb_project=str(cfg.logger.wandb_project), tensorboard=bool(cfg.logger.tensorboard),
+                       mlflow=bool(cfg.logger.mlflow),
+                       config=to_container(cfg), resume=resume) as logger:
+        final = train(cfg, out, logger, checkpoint_dir=out / "checkpoints", resume=resume)
+    write_json(out / "final_eval.json", final)
+    plot_learning_curves(out / "metrics.csv", out, warmup_steps=int(cfg.collector.warmup_steps))
+    report_final(out, method, final, options.compare, cfg)
+    return final

@@ -1,0 +1,379 @@
+"""The PE-RLHF (HACO, HAIM-DRL) learner: warm-up, ensemble fit, online collection with takeovers, updates.
+
+:class:`ProxyQLearner` plugs into :class:`~pe_rlhf.runtime.run.Run`, the loop every method shares (cadence,
+checkpoints, ``--resume``, finish); its batches, and :meth:`ProxyQLearner.learn` on each, in phases:
+
+1. warm-up: the mentor (or, with ``collector.warmup_policy``, the trained actor of an earlier run: the
+   expert-policy warm-up) drives ``collector.warmup_steps`` steps (the transform forces it); the
+   transitions, with the env reward, fill a warm-up buffer and, relabelled
+   (:func:`~pe_rlhf.algorithms.proxy_q.steps.relabel_warmup`), the replay buffer;
+2. the Q-ensemble is fitted on the warm-up data (then frozen, or refreshed on a schedule);
+3. online: the collector runs the actor inside ``InterventionTransform`` (mentor + physics +
+   selector); ``optim.updates_per_batch`` PERLHFLoss updates follow every batch once
+   ``collector.learning_starts`` frames are in (with ``optim.async_updates``, at the same ratio in a
+   learner thread beside acting: :mod:`pe_rlhf.algorithms.proxy_q.background_updates`; ``collector.realtime_hz``
+   holds the env to a steady step rate for a person: :class:`~pe_rlhf.transforms.RealtimePacing`);
+4. (the run's) every ``eval.every_frames``: evaluation on the test split without the mentor; every
+   ``checkpoint.every_frames``: a checkpoint (``--resume DIR`` continues from it).
+
+What a run survives: each collected batch is journaled (:mod:`pe_rlhf.runtime.journal`) before
+it is used, and with the ``single`` backend each episode that ends inside the batch being collected
+is written at once (:mod:`pe_rlhf.runtime.episode_journal`), so ``--resume`` after a kill replays
+the batches since the checkpoint with the RNG states they arrived with, then trains on the
+collected batch's steps up to its last finished episode as a short batch, and loses only the steps
+of the episode in progress since the batch began (multi-worker backends: the batch being collected);
+a non-finite loss, gradient or parameter stops updates with a ``FloatingPointError`` naming it,
+after a checkpoint of everything collected; a mentor's disconnect (a person's window closed,
+gamepad unplugged: ``disconnects``) triggers a checkpoint at the end of that batch; the run ends
+with a checkpoint of its last frame; ``train/sim_errors_total`` counts episodes the simulator's
+faults ended (:mod:`pe_rlhf.envs.driving_env`).
+
+A checkpoint taken while collecting (``single`` backend) holds the collection in progress
+(:mod:`pe_rlhf.runtime.collection_state`: the episode, the takeover, the selector's veto count, the
+collector's carrier), so ``--resume`` from it with no journal after it (a run's folder kept at that
+checkpoint) continues bit-identically to the run that went on; after a kill, the journal's batches are
+replayed and collection starts a fresh episode.
+
+``collector.backend`` picks the collector (:func:`pe_rlhf.algorithms.proxy_q.builders.build_collector`). With
+a multi-worker backend the workers own the envs, mentors and transforms, so a resume restarts the
+workers' simulated mentors (fatigue, RNG) and sets their transform step counters from the
+checkpointed global frame count (no repeated warm-up); everything else (networks, optimisers,
+buffers, counters) resumes exactly.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import torch
+
+from pe_rlhf.evaluation import TorchRLPolicyAdapter, evaluate
+from pe_rlhf.modules import EnsembleSchedule
+from pe_rlhf.objectives import fit_q_ensemble
+from pe_rlhf.runtime.checkpoint import capture_rng, restore_rng
+from pe_rlhf.runtime.collection_state import capture_collection, restore_collection
+from pe_rlhf.runtime.run import Learner, Run
+from pe_rlhf.threads import torch_threads
+from pe_rlhf.algorithms.proxy_q import builders
+from pe_rlhf.algorithms.proxy_q.config import algorithm_name, method_name
+from pe_rlhf.algorithms.proxy_q.steps import batch_metrics, ensemble_transitions, relabel_warmup
+from pe_rlhf.transforms import InterventionTransform, RealtimePacing
+
+if TYPE_CHECKING:
+    from pe_rlhf.runtime.journal import JournalEntry
+
+class Counters:
+    """Cumulative training bookkeeping (saved in checkpoints)."""
+
+    def __init__(self):
+        self.frames = self.takeover_steps = self.takeover_starts = self.mentor_chosen_steps = 0.0
+        self.safety_violations = self.episodes = self.successes = self.updates = self.sim_errors = 0.0
+        self.online_frames = self.env_seconds = self.update_seconds = 0.0
+
+    def add(self, m: dict[str, float], warmup: bool) -> None:
+        self.frames += m["steps"]
+        self.safety_violations += m["safety_violations"]
+        self.episodes += m["episodes"]
+        self.successes += m["successes"]
+        self.sim_errors += m["sim_errors"]
+        if not warmup:
+            self.online_frames += m["steps"]
+            self.takeover_steps += m["takeover_steps"]
+            self.takeover_starts += m["takeover_starts"]
+            self.mentor_chosen_steps += m["mentor_chosen_steps"]
+
+    def state_dict(self) -> dict:
+        return dict(vars(self))
+
+    def load_state_dict(self, state: dict) -> None:
+        vars(self).update(state)
+
+
+VIDEO_NAME = "test_episode.gif"
+VIDEO_MAX_STEPS = 400
+
+
+def record_test_video(actor, cfg, env_config, path: Path, logger=None, step: int = 0) -> dict:
+    """A GIF of the trained agent (deterministic) on the first ``eval.split`` scene, at most
+    ``VIDEO_MAX_STEPS`` steps (40 s of driving), also sent to ``logger.log_video`` when the logger has
+    one (``eval/test_episode`` at ``step``); returns where it ended (success, crash, ...)."""
+    from pe_rlhf.envs import scene_seeds
+    from pe_rlhf.runtime.video import record_episode_gif
+
+    seed = scene_seeds(str(cfg.eval.split))[0]
+    log_video = getattr(logger, "log_video", None)
+    info = record_episode_gif(TorchRLPolicyAdapter(actor), env_config, seed, path, max_steps=VIDEO_MAX_STEPS,
+                              keep_video=log_video is not None)
+    if log_video is not None:
+        log_video("eval/test_episode", info["video"], step=step)
+    return {k: info[k] for k in ("path", "steps", "success", "crash_vehicle", "crash_object", "out_of_road")}
+
+
+def pacing_log(pacing: RealtimePacing | None, frames: int) -> dict[str, float]:
+    """Frame-time columns over the batch's last ``frames`` frames (none when the env is not paced)."""
+    if pacing is None:
+        return {}
+    stats = pacing.frame_stats(last=frames)
+    return {"time/frame_ms_mean": stats["frame_ms_mean"], "time/frame_jitter_ms_p95": stats["jitter_ms_p95"],
+            "time/frame_jitter_ms_max": stats["jitter_ms_max"]}
+
+
+def iteration_log(counters: Counters, m: dict, losses: dict) -> dict[str, float]:
+    online = max(counters.online_frames, 1.0)
+    log = {
+        "env_steps": counters.frames,
+        "train/safety_violations_total": counters.safety_violations,
+        "train/takeover_rate": m["takeover_steps"] / max(m["steps"], 1.0),
+        "train/takeover_count": counters.takeover_starts,
+        "train/takeover_data_usage": counters.takeover_steps / online,
+        "train/value_takeover_count": counters.mentor_chosen_steps,
+        "train/value_takeover_rate": counters.mentor_chosen_steps / max(counters.takeover_steps, 1.0),
+        "train/intervention_cost": m["intervention_cost"],
+        "train/success_rate_total": counters.successes / max(counters.episodes, 1.0),
+        "train/sim_errors_total": counters.sim_errors,
+        "time/env_seconds": counters.env_seconds,
+        "time/update_seconds": counters.update_seconds,
+    }
+    if "disturbance_cost" in m:  # HAIM-DRL
+        log["train/disturbance_cost"] = m["disturbance_cost"]
+    for k, v in losses.items():
+        log[f"loss/{k[5:]}" if k.startswith("loss_") else f"train/{k}"] = v
+    return log
+
+
+def train(cfg, out_dir: Path, logger, checkpoint_dir: Path | None = None, resume: bool = False) -> dict:
+    """Run the recipe described by ``cfg``; returns the final evaluation summary dict.
+
+    ``logger`` has ``log(step, metrics)`` (and ``truncate_after`` for resuming). With
+    ``checkpoint_dir``, checkpoints are written every ``checkpoint.every_frames``; with ``resume``,
+    the newest one there is loaded first and the run continues from its step.
+    """
+    torch.manual_seed(int(cfg.seed))
+    update_threads = torch.get_num_threads()
+    with torch_threads(1):
+        learner = ProxyQLearner(cfg, logger, checkpoint_dir, update_threads)
+        run = Run(cfg, learner, logger, checkpoint_dir, total=cfg.collector.total_frames,
+                  eval_every=cfg.eval.every_frames, checkpoint_every=cfg.checkpoint.every_frames)
+        return run.train(out_dir, resume)
+
+
+class ProxyQLearner(Learner):
+    """PE-RLHF, HACO and HAIM-DRL as a :class:`~pe_rlhf.runtime.run.Learner`: its objects, and the work done
+    on each batch, collected or replayed from the journal on ``--resume`` (:mod:`pe_rlhf.runtime.journal`)."""
+
+    def __init__(self, cfg, logger, checkpoint_dir: Path | None, update_threads: int):
+        from pe_rlhf.runtime.config import driving_config
+        from pe_rlhf.runtime.episode_journal import PendingEpisodesJournal
+        from pe_rlhf.runtime.journal import BatchJournal
+
+        self.cfg, self.logger, self.name = cfg, logger, method_name(cfg)  # the logger: the test episode's video
+        self.env_config = driving_config(cfg)
+        self.ensemble = builders.build_q_ensemble(cfg)
+        self.env, self.mentor = builders.build_local_env(cfg, self.env_config, self.ensemble)  # None: workers own them
+        self.learner_actor = builders.build_actor(cfg)
+        self.loss, soft_update = builders.build_loss(cfg, self.learner_actor)
+        self.device = builders.learner_device(cfg)  # None: the CPU, acting with the learner's actor
+        if self.device is not None:
+            self.loss.to(self.device)  # actor, critics, targets (the actor's parameters are the loss's)
+        self.optimizers = builders.build_optimizers(cfg, self.loss)
+        self.replay = builders.build_replay_buffer(cfg, balanced=True)
+        self.warmup_buffer = builders.build_replay_buffer(cfg)
+        fitted = cfg.selector.enabled and builders.value_is_fitted(cfg)  # an expert is frozen: never fitted
+        self.schedule = EnsembleSchedule(int(cfg.collector.warmup_steps), int(cfg.selector.refresh_every) if fitted else 0,
+                                         int(cfg.selector.warmup_fit_steps) if fitted else 0,
+                                         int(cfg.selector.refresh_steps))
+        # selector.refresh_data=all: refreshes also fit on the online transitions (the ensemble sees what the
+        # hybrid policy's actions led to in the states the agent visits, crashes under physics' actions included)
+        self._ensemble_sees_online = (self.ensemble is not None and int(cfg.selector.refresh_every) > 0
+                                      and str(cfg.selector.refresh_data) == "all")
+        self.counters = Counters()
+        modules = {"loss": self.loss, **({"ensemble": self.ensemble} if self.ensemble is not None else {})}
+        self.objects = {"modules": modules, "optimizers": self.optimizers,
+                        "replay_buffers": {"replay": self.replay, "warmup": self.warmup_buffer}}
+        self.transform = builders.find_transform(self.env, InterventionTransform) if self.env is not None else None
+        self.pacing = builders.find_transform(self.env, RealtimePacing) if self.env is not None else None
+        periodic = checkpoint_dir is not None and int(cfg.checkpoint.every_frames) > 0
+        self.journal = BatchJournal(Path(checkpoint_dir) / "journal") if periodic else None
+        self.pending = None  # the single backend's episodes ended inside the batch being collected
+        if self.journal is not None and self.env is not None:
+            self.pending = PendingEpisodesJournal(self.journal, int(cfg.collector.frames_per_batch), self._actor_state)
+            self.env.append_transform(self.pending)  # last: it copies each step as the collector stores it
+        self.updater = builders.build_updater(cfg, self.loss, self.optimizers, soft_update, self.replay,
+                                              self.learner_actor, update_threads, self.device)
+        self.collector, self.losses, self.disconnects = None, {}, 0
+        self.journaled: list[JournalEntry] = []  # on --resume: the killed run's batches since the checkpoint,
+        self.journaled_pending: JournalEntry | None = None  # and its last batch up to the last finished episode
+        self.resumed_collection: tuple[dict, dict | None] | None = None  # (collection, mentor state) to continue
+
+    @property
+    def progress(self) -> int:
+        return int(self.counters.frames)
+
+    @property
+    def done(self) -> bool:
+        return self.counters.frames >= int(self.cfg.collector.total_frames)
+
+    @property
+    def actor(self):
+        """The actor to evaluate on the CPU: the learner's own, or with ``optim.device`` its synced CPU copy."""
+        return self.learner_actor if self.device is None else self.updater.acting_actor
+
+    def checkpoint_objects(self, checkpoint: Path | None = None) -> dict:
+        return self.objects
+
+    def state_dict(self) -> dict:
+        c = self.counters
+        c.updates = self.updates0 + self.updater.updates_done
+        return {"counters": c.state_dict(), "schedule": self.schedule.state_dict(), **self._actor_state(),
+                "collection": capture_collection(self.collector, self.transform)}
+
+    def load_state_dict(self, state: dict) -> None:
+        """The checkpoint's counters, schedule and actors; the journal entries written after it, and the
+        pending file that continues them, to replay."""
+        self.counters.load_state_dict(state["counters"])
+        self.schedule.load_state_dict(state["schedule"])
+        self.restore_actors(state)
+        if state.get("collection") is not None:  # the episode in progress at the checkpoint (single backend)
+            self.resumed_collection = (state["collection"], state["mentor"])
+        if self.journal is None:
+            return
+        self.journaled = self.journal.entries_after(int(state["step"]))
+        self.journaled_pending = self.journal.pending_at(self.journaled[-1].end if self.journaled else state["step"])
+        if self.journaled or self.journaled_pending is not None:  # collection went on: its episode is not the next
+            self.resumed_collection = None
+
+    def restore_actors(self, state: dict) -> None:
+        """The transform's step count and the mentor's state (multi-worker backends restart theirs)."""
+        if self.transform is not None:
+            self.transform.total_steps = int(state["transform_steps"])
+            if state["mentor"] is not None:
+                self.mentor.load_state_dict(state["mentor"])
+
+    def _actor_state(self) -> dict:
+        return {"transform_steps": int(self.counters.frames) if self.transform is None else self.transform.total_steps,
+                "mentor": self.mentor.state_dict() if self.mentor is not None else None}
+
+    def start(self) -> None:
+        self.updates0, self.update_seconds0 = self.counters.updates, self.counters.update_seconds
+        self.updater.start()  # optim.async_updates: the learner thread (pe_rlhf.algorithms.proxy_q.background_updates)
+
+    def batches(self):
+        """The killed run's journaled batches since the checkpoint (as it processed them), its last batch up to
+        the last finished episode (a short batch), then collection; ``(batch, journaled)`` pairs."""
+        try:
+            for entry in self.journaled:
+                if self.done:
+                    return
+                restore_rng(entry.rng)
+                yield entry.batch, True
+                self.restore_actors(entry.state)
+            pending = self.journaled_pending
+            if pending is not None and not self.done:
+                restore_rng(pending.rng)
+                self.restore_actors(pending.state)  # first: journaled with it, and a checkpoint after it saves it
+                yield pending.batch, False
+            yield from self.collect()
+        finally:
+            if self.collector is not None:
+                builders.shutdown_collector(self.collector)
+                self.collector = None
+
+    def collect(self):
+        remaining = int(self.cfg.collector.total_frames) - int(self.counters.frames)
+        if remaining <= 0:
+            return
+        if self.pending is not None:
+            self.pending.restart(int(self.counters.frames))
+        rng = capture_rng() if self.resumed_collection is not None else None
+        self.collector = builders.build_collector(self.cfg, self.env, self.updater.policy, remaining,
+                                                  ensemble=self.ensemble, start_frames=int(self.counters.frames))
+        if self.resumed_collection is not None:  # continue the checkpoint's episode, not the collector's reset
+            restore_collection(self.collector, self.transform, *self.resumed_collection)
+            restore_rng(rng)  # as if no collector had been built here (the original's went on stepping)
+            self.resumed_collection = None
+        t_env = time.time()
+        for batch in self.collector:
+            self.counters.env_seconds += time.time() - t_env
+            if self.done:
+                break
+            yield batch, False
+            t_env = time.time()
+
+    def learn(self, item) -> dict[str, float]:
+        """One batch: journal, buffers, ensemble fit, updates; returns its row."""
+        batch, journaled = item
+        cfg, c = self.cfg, self.counters
+        if self.journal is not None and not journaled:  # on disk before anything else happens to it
+            self.journal.write(batch, int(c.frames), self._actor_state())
+            self.journal.discard_pending(int(c.frames))  # its pending files: the whole batch is in now
+        warmup = c.frames < int(cfg.collector.warmup_steps)
+        m = batch_metrics(batch)
+        c.add(m, warmup)
+        if warmup or self._ensemble_sees_online:  # online: the executed (hybrid) action and its env reward
+            self.warmup_buffer.extend(ensemble_transitions(batch).reshape(-1))  # (N, T) with multisync: time last
+        if warmup:
+            batch = relabel_warmup(batch, keep_agent_action=bool(cfg.collector.warmup_gap))
+            m["intervention_cost"] = 0.0  # forced mentor driving is no takeover: nothing is charged
+        with self.updater.lock:  # the learner thread samples from it
+            self.replay.extend(batch.reshape(-1))
+        self._fit_ensemble()
+        backlog = self.updater.backlog  # updates owed by earlier batches, not run yet: 0 while the learner keeps up
+        if c.frames >= int(cfg.collector.learning_starts):
+            self.updater.notify_frames(int(m["steps"]))  # sync: the updates these frames pay for run here
+            self.losses = self.updater.latest_losses() or self.losses
+            if self.collector is not None:
+                builders.sync_policy(self.collector)
+        c.updates = self.updates0 + self.updater.updates_done
+        c.update_seconds = self.update_seconds0 + self.updater.update_seconds
+        metrics = iteration_log(c, m, self.losses)
+        metrics["time/update_threads"] = float(self.updater.threads)
+        metrics["train/update_backlog"] = float(backlog)
+        metrics.update(pacing_log(self.pacing, int(m["steps"])))
+        disconnects = int(getattr(self.mentor, "disconnects", 0) or 0)  # a person's window closed, pad unplugged
+        metrics["train/mentor_disconnects"] = float(disconnects)
+        fatigue = getattr(self.mentor, "fatigue", None)  # a simulated mentor's noise/error multiplier
+        if isinstance(fatigue, (int, float)):
+            metrics["train/mentor_fatigue"] = float(fatigue)
+        self.checkpoint_requested, self.disconnects = disconnects > self.disconnects, disconnects
+        return metrics
+
+    def postfix(self, row: dict[str, float]) -> dict:
+        return {"takeover": f"{row['train/takeover_rate']:.2f}", "violations": int(self.counters.safety_violations),
+                "succ": f"{row['train/success_rate_total']:.2f}"}
+
+    def _fit_ensemble(self) -> None:
+        cfg = self.cfg
+        fit_steps = self.schedule.due(int(self.counters.frames)) if self.ensemble is not None else 0
+        if not fit_steps:
+            return
+        fit_q_ensemble(self.ensemble, self.warmup_buffer, steps=fit_steps, batch_size=int(cfg.selector.batch_size),
+                       gamma=float(cfg.loss.gamma), lr=float(cfg.selector.lr),
+                       target_noise=float(cfg.selector.target_noise), tau=float(cfg.selector.tau),
+                       loss=str(cfg.selector.fit_loss), seed=int(cfg.seed))
+        self.ensemble.requires_grad_(False)
+        if self.collector is not None:
+            builders.push_ensemble_weights(self.collector, self.ensemble)
+
+    def paused(self):
+        return self.updater.paused()
+
+    def saved(self, step: int) -> None:
+        if self.journal is not None:  # its files up to the checkpoint are redundant now
+            self.journal.prune(step)
+
+    def stop(self, finish: bool = True) -> None:
+        """Join the learner thread: after the updates still owed (``finish``: the run keeps its update-to-data
+        ratio) or after the one in flight."""
+        self.updater.stop(finish=finish)
+        if finish:
+            self.counters.updates = self.updates0 + self.updater.updates_done
+            self.counters.update_seconds = self.update_seconds0 + self.updater.update_seconds
+
+    def summary(self, out_dir: Path) -> dict:
+        summary = {"algorithm": algorithm_name(self.cfg), "training": self.counters.state_dict()}
+        if self.cfg.eval.video:
+            summary["video"] = record_test_video(self.actor, self.cfg, self.env_config, out_dir / VIDEO_NAME,
+                                                 self.logger, int(self.counters.frames))
+        return summary

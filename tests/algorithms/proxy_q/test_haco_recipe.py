@@ -1,0 +1,39 @@
+"""The HACO recipe (``recipes/haco``): the PE-RLHF recipe without physics and selector, as the sweeps' ``haco``."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from _scripts import load_script
+
+from pe_rlhf.runtime.config import driving_config, to_container
+from pe_rlhf.runtime.world import build_mentor
+from pe_rlhf.algorithms.proxy_q import builders
+from pe_rlhf.algorithms.proxy_q.config import load_config, method_name
+from pe_rlhf.transforms import InterventionTransform
+
+RECIPE_DIR = Path(__file__).resolve().parents[3] / "recipes" / "haco"
+
+
+def test_the_recipe_is_the_sweeps_haco_and_builds_no_selector():
+    from pe_rlhf.apps.sweeps.methods import builtin_methods
+
+    recipe = load_config(RECIPE_DIR / "config.yaml", ["profile=cpu", "seed=3"])
+    sweep = load_config(None, ["profile=cpu", "seed=3", *builtin_methods()["haco"].overrides])
+    assert to_container(recipe) == to_container(sweep)
+    assert method_name(recipe) == "HACO"
+    env = builders.build_train_env(recipe, driving_config(recipe), build_mentor(recipe),
+                                   builders.build_q_ensemble(recipe), builders.build_physics(recipe))
+    intervention = builders.find_transform(env, InterventionTransform)
+    assert intervention.selector is None and intervention.physics is None
+    env.close()
+
+
+def test_smoke_run_executes_only_the_mentor_in_takeovers(tmp_path):
+    final = load_script("recipes/haco/train.py", "haco_recipe").main(["profile=smoke", "--out", str(tmp_path)])
+    saved = load_config(tmp_path / "config.yaml", apply_profile=False)
+    assert not saved.physics.enabled and not saved.selector.enabled
+    written = json.loads((tmp_path / "final_eval.json").read_text())
+    assert written["success_rate"] == final["success_rate"]
+    assert (tmp_path / "actor.pt").is_file()

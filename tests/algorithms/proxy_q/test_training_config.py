@@ -1,0 +1,393 @@
+"""Tests of the recipe configuration: defaults, YAML/dict sync, profiles, overrides, validation errors."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import pytest
+from omegaconf import OmegaConf
+
+from pe_rlhf.envs.config import DrivingConfig
+from pe_rlhf.runtime.config import driving_config, save_config, to_container
+from pe_rlhf.runtime.config_rules import ConfigError
+from pe_rlhf.runtime.config_schema import OPEN_GROUPS
+from pe_rlhf.algorithms.proxy_q.builders import epsilon_select, warmup_selection
+from pe_rlhf.algorithms.proxy_q.config import (
+    PROFILES,
+    RULES,
+    algorithm_name,
+    default_config_path,
+    load_config,
+    method_name,
+    physics_config,
+    validate_config,
+)
+from pe_rlhf.algorithms.proxy_q.config_schema import RecipeConfig, defaults
+
+RECIPE_YAML = Path(__file__).resolve().parents[3] / "recipes" / "pe_rlhf" / "config.yaml"
+HAIM_DRL_YAML = Path(__file__).resolve().parents[3] / "recipes" / "haim_drl" / "config.yaml"
+GROUPS = ("env", "mentor", "physics", "selector", "collector", "replay_buffer", "optim", "loss", "disturbance",
+          "logger", "eval", "checkpoint")
+
+
+def leaves(d: dict, prefix: str = "") -> dict:
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, dict) and v and f"{prefix}{k}" not in OPEN_GROUPS:
+            out.update(leaves(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+# --------------------------------------------------------------------------- defaults and files
+
+
+def test_defaults_load_and_validate_with_the_paper_values():
+    cfg = load_config()
+    validate_config(cfg)
+    assert set(GROUPS) <= set(cfg.keys())
+    assert cfg.profile == "paper"
+    assert (cfg.loss.gamma, cfg.loss.tau, cfg.optim.lr, cfg.replay_buffer.batch_size) == (0.99, 0.005, 1e-4, 1024)
+    assert (cfg.collector.learning_starts, cfg.collector.frames_per_batch, cfg.collector.warmup_steps) == (100, 100,
+                                                                                                           10000)
+    assert (cfg.loss.gap_coef, epsilon_select(cfg), cfg.loss.psi, cfg.loss.intervention_weight) == (
+        10.0, -0.5, 1.0, 1.0)  # epsilon_select: null, the default value source's own (forecast: -0.5 s)
+    assert cfg.selector.value == "forecast"
+    assert driving_config(cfg) == DrivingConfig(lane_features=True)  # every Table-1 row uses the lane summary
+    assert driving_config(cfg).split == "train"
+
+
+def test_recipe_yaml_is_a_hydra_config_over_the_structured_defaults():
+    """The recipe file holds no copy of the defaults: its defaults list names the schema and the profile."""
+    assert default_config_path() == RECIPE_YAML
+    assert OmegaConf.to_container(OmegaConf.load(RECIPE_YAML)) == {
+        "defaults": ["pe_rlhf_schema", "_self_", {"profile": "paper"}]}
+    assert to_container(load_config()) == defaults() == OmegaConf.to_container(OmegaConf.structured(RecipeConfig))
+
+
+def test_every_field_has_a_validation_rule_its_default_passes():
+    assert set(leaves(defaults())) - set(OPEN_GROUPS) == set(RULES)
+    flat = leaves(defaults())
+    for field, rule in RULES.items():
+        assert rule(flat[field]) is None, (field, flat[field])
+
+
+def test_without_a_recipe_file_the_schema_defaults_are_used(monkeypatch):
+    monkeypatch.setattr("pe_rlhf.algorithms.proxy_q.config.default_config_path", lambda: None)
+    assert to_container(load_config()) == defaults()
+    assert load_config(overrides=["profile=smoke"]).collector.total_frames == 300
+
+
+def test_recipes_env_var_locates_the_file(tmp_path, monkeypatch):
+    (tmp_path / "pe_rlhf").mkdir()
+    (tmp_path / "pe_rlhf" / "config.yaml").write_text("optim:\n  lr: 0.002\n")
+    monkeypatch.setenv("PE_RLHF_RECIPES", str(tmp_path))
+    assert load_config().optim.lr == 0.002
+    monkeypatch.setenv("PE_RLHF_RECIPES", str(tmp_path / "nowhere"))
+    with pytest.raises(ConfigError, match="PE_RLHF_RECIPES"):
+        load_config()
+
+
+def test_partial_file_applies_over_defaults_and_unknown_file_key_fails(tmp_path):
+    path = tmp_path / "c.yaml"
+    path.write_text("mentor: {name: amateur}\nenv: {traffic_density: 0.3}\n")
+    cfg = load_config(path)
+    assert cfg.mentor.name == "amateur" and cfg.env.traffic_density == 0.3 and cfg.optim.lr == 1e-4
+    path.write_text("optim: {learning_rate: 0.1}\n")
+    with pytest.raises(ConfigError, match=r"optim\.learning_rate"):
+        load_config(path)
+    with pytest.raises(ConfigError, match="not found"):
+        load_config(tmp_path / "missing.yaml")
+
+
+def test_save_and_reload_round_trip(tmp_path):
+    cfg = load_config(overrides=["profile=cpu", "optim.updates_per_batch=50", "env.horizon=500"])
+    path = save_config(cfg, tmp_path / "run" / "config.yaml")
+    again = load_config(path, apply_profile=False)
+    assert to_container(again) == to_container(cfg)
+    assert isinstance(to_container(cfg)["loss"]["hidden"], list)
+
+
+def test_a_saved_config_records_the_method_and_refuses_values_that_contradict_it(tmp_path):
+    haco = load_config(overrides=["profile=smoke", "physics.enabled=false", "selector.enabled=false"])
+    path = save_config(haco, tmp_path / "config.yaml", algorithm_name(haco))
+    assert path.read_text().startswith("algorithm: haco\n")  # the registry name, first
+    assert to_container(load_config(path, apply_profile=False)) == to_container(haco)  # read apart from the values
+    with pytest.raises(ConfigError, match=r"^algorithm='haco' is invalid: the run folder's config describes 'pe-rlhf'"):
+        load_config(path, ["physics.enabled=true", "selector.enabled=true"], apply_profile=False)
+
+
+# --------------------------------------------------------------------------- profiles and overrides
+
+
+def test_cpu_profile_changes_the_documented_fields():
+    paper, cpu = load_config(), load_config(overrides=["profile=cpu"])
+    assert cpu.profile == "cpu"
+    assert cpu.replay_buffer.batch_size == 256 < paper.replay_buffer.batch_size
+    assert cpu.optim.updates_per_batch == 100  # the paper's update-to-data ratio is kept
+    assert list(cpu.loss.hidden) == [256, 256]
+    assert (cpu.eval.episodes, cpu.eval.every_frames, cpu.eval.video) == (20, 10000, False)
+    assert cpu.collector.total_frames == 30000
+
+
+def test_quick_profile_is_make_runs_ten_minute_budget():
+    quick = load_config(overrides=["profile=quick"])
+    assert quick.collector.total_frames == 9000 and quick.collector.warmup_steps == 5000
+    assert quick.replay_buffer.batch_size == 256 and quick.eval.video and quick.eval.every_frames == 0
+    assert list(quick.loss.hidden) == [256, 256]  # the paper's networks
+
+
+def test_smoke_profile_is_tiny():
+    cfg = load_config(overrides=["profile=smoke"])
+    assert cfg.collector.total_frames <= 500 and cfg.collector.warmup_steps <= 100
+    assert list(cfg.loss.hidden) == [32, 32] and list(cfg.selector.hidden) == [32, 32]
+    assert cfg.eval.episodes == 1 and cfg.eval.video  # the smoke run checks the GIF is written
+    assert driving_config(cfg).horizon == 100
+
+
+def test_profile_from_the_file_and_cli_override_on_top_of_profile(tmp_path):
+    path = tmp_path / "c.yaml"
+    path.write_text("profile: smoke\n")
+    assert load_config(path).collector.total_frames == PROFILES["smoke"]["collector"]["total_frames"]
+    cfg = load_config(path, ["replay_buffer.batch_size=64", "replay_buffer.size=5000"])
+    assert cfg.replay_buffer.batch_size == 64 and cfg.profile == "smoke"
+    assert load_config(path, ["profile=paper"]).collector.total_frames == 30000
+
+
+@pytest.mark.parametrize("name", sorted(PROFILES))
+def test_every_profile_validates_for_both_methods(name):
+    validate_config(load_config(overrides=[f"profile={name}"]))
+    load_config(overrides=[f"profile={name}", "selector.enabled=false", "physics.enabled=false"])
+
+
+def test_cli_overrides_apply():
+    cfg = load_config(overrides=["optim.lr=3e-4", "mentor.name=amateur", "loss.hidden=[128,128]",
+                                 "selector.variance_threshold=2.5", "env.traffic_density=0.2",
+                                 "mentor.kwargs.action_noise=0.2", "logger.out_dir=runs/x"])
+    assert cfg.optim.lr == pytest.approx(3e-4)
+    assert cfg.mentor.name == "amateur" and cfg.mentor.kwargs.action_noise == 0.2
+    assert list(cfg.loss.hidden) == [128, 128] and cfg.selector.variance_threshold == 2.5
+    assert driving_config(cfg).traffic_density == 0.2
+    assert driving_config(cfg, split="test").split == "test"
+    assert cfg.logger.out_dir == "runs/x"
+
+
+@pytest.mark.parametrize("override, named", [("optim.lrr=1", "optim.lrr"), ("optimizer.lr=1", "optimizer"),
+                                             ("loss.gamma.x=1", "loss.gamma.x")])
+def test_unknown_override_key_fails_naming_it(override, named):
+    with pytest.raises(ConfigError, match=named.replace(".", r"\.")):
+        load_config(overrides=[override])
+
+
+def test_malformed_override_and_unknown_profile_fail():
+    with pytest.raises(ConfigError, match="key=value"):
+        load_config(overrides=["optim.lr"])
+    with pytest.raises(ConfigError, match="profile='gpu'"):
+        load_config(overrides=["profile=gpu"])
+
+
+# --------------------------------------------------------------------------- validation
+
+
+INVALID = [
+    ("seed", "-1"),
+    ("env.traffic_density", "-1"),
+    ("env.lanes", "7"),
+    ("env.trafic_density", "0.5"),
+    ("mentor.name", "expert"),
+    ("selector.warmup_selection", "sometimes"),
+    ("optim.threads", "0"),
+    ("mentor.seed", "1.5"),
+    ("mentor.kwargs.skill", "3"),
+    ("physics.use_idm", "maybe"),
+    ("selector.epsilon_select", "nan"),
+    ("selector.variance_threshold", "-0.5"),
+    ("selector.num_members", "0"),
+    ("selector.hidden", "[256,-3]"),
+    ("selector.fit_loss", "median"),
+    ("selector.lr", "0"),
+    ("collector.total_frames", "0"),
+    ("collector.frames_per_batch", "40000"),
+    ("collector.warmup_steps", "50000"),
+    ("collector.learning_starts", "-5"),
+    ("collector.backend", "threads"),
+    ("collector.num_workers", "4"),
+    ("replay_buffer.size", "0"),
+    ("replay_buffer.batch_size", "200000"),
+    ("optim.lr", "-0.001"),
+    ("optim.updates_per_batch", "0"),
+    ("optim.max_grad_norm", "0"),
+    ("loss.gamma", "1.5"),
+    ("loss.tau", "0"),
+    ("loss.tau", "1.2"),
+    ("loss.gap_coef", "-1"),
+    ("loss.intervention_critic_action", "mentor"),
+    ("loss.target_entropy", "high"),
+    ("loss.alpha_init", "0"),
+    ("loss.hidden", "[]"),
+    ("loss.cosine_cost", "2"),
+    ("loss.disturbance_weight", "-1"),
+    ("loss.num_disturbance_qvalue_nets", "0"),
+    ("disturbance.enabled", "maybe"),
+    ("disturbance.threshold", "0"),
+    ("disturbance.horizon", "-2"),
+    ("disturbance.follower_range", "nan"),
+    ("logger.wandb_mode", "cloud"),
+    ("logger.log_every", "0"),
+    ("eval.episodes", "0"),
+    ("eval.split", "val"),
+    ("checkpoint.keep", "0"),
+    ("profile", "gpu"),
+]
+
+
+@pytest.mark.parametrize("field, value", INVALID)
+def test_invalid_value_names_field_and_value(field, value):
+    with pytest.raises(ConfigError) as info:
+        load_config(overrides=[f"{field}={value}"])
+    message = str(info.value)
+    assert field in message, message
+    assert value.strip("[]").split(",")[-1] in message, message
+    assert info.value.field is None or info.value.field == field
+
+
+def test_invalid_values_cover_every_group():
+    assert {f.split(".")[0] for f, _ in INVALID} >= set(GROUPS)
+
+
+def test_non_finite_numbers_are_refused():
+    with pytest.raises(ConfigError, match=r"selector\.epsilon_select=nan is invalid: must be a finite number"):
+        load_config(overrides=["selector.epsilon_select=.nan"])  # YAML's spelling, as before Hydra
+    with pytest.raises(ConfigError, match=r"optim\.lr=inf is invalid: must be a finite number > 0"):
+        load_config(overrides=["optim.lr=.inf"])
+    with pytest.raises(ConfigError, match=r"optim\.lr=inf is invalid: must be a finite number > 0"):
+        load_config(overrides=["optim.lr=inf"])  # Hydra's
+    with pytest.raises(ConfigError, match=r"selector\.epsilon_select=-inf is invalid: must be a finite number"):
+        load_config(overrides=["selector.epsilon_select=-.inf"])
+
+
+def test_env_traffic_density_error_names_the_env_field():
+    with pytest.raises(ConfigError, match=r"env\.traffic_density=-1 is invalid: must be in \[0, 5\]"):
+        load_config(overrides=["env.traffic_density=-1"])
+
+
+def test_ray_backend_is_refused_with_the_reason_when_not_installed():
+    if importlib.util.find_spec("ray") is not None:
+        load_config(overrides=["collector.backend=ray", "collector.num_workers=2"])
+    else:
+        with pytest.raises(ConfigError, match="ray package"):
+            load_config(overrides=["collector.backend=ray", "collector.num_workers=2"])
+
+
+def test_multi_process_backends_and_custom_mentor_paths_are_accepted():
+    cfg = load_config(overrides=["collector.backend=multisync", "collector.num_workers=4",
+                                 "mentor.name=my_pkg.mentors:CarefulMentor", "mentor.kwargs.anything=1"])
+    assert cfg.collector.num_workers == 4
+    with pytest.raises(ConfigError, match="mentor.name='my_pkg.mentors'"):
+        load_config(overrides=["mentor.name=my_pkg.mentors"])
+    with pytest.raises(ConfigError, match="collector.backend='multisync'"):
+        load_config(overrides=["mentor.name=human", "collector.backend=multisync", "collector.num_workers=2"])
+
+
+def test_validate_rejects_hand_built_configs_with_unknown_groups():
+    cfg = load_config(validate=False)
+    cfg = OmegaConf.merge(OmegaConf.create(to_container(cfg)), {"extra": {"x": 1}})
+    with pytest.raises(ConfigError, match=r"extra\.x"):
+        validate_config(cfg)
+
+
+# --------------------------------------------------------------------------- method
+
+
+def test_method_names():
+    assert method_name(load_config()) == "PE-RLHF"
+    haco = load_config(overrides=["selector.enabled=false", "physics.enabled=false"])
+    assert method_name(haco) == "HACO"
+    assert method_name(load_config(overrides=["selector.num_members=1"])) == "PE-RLHF"  # w/o ensemble ablation
+    assert method_name(load_config(overrides=["selector.enabled=false", "physics.enabled=false",
+                                              "disturbance.enabled=true"])) == "HAIM-DRL"
+    assert method_name(load_config(overrides=["disturbance.enabled=true"])) == "PE-RLHF+disturbance"
+    assert algorithm_name(load_config(overrides=["disturbance.enabled=true"])) == "pe-rlhf"  # a PE-RLHF variant
+
+
+def test_haim_drl_recipe_is_haco_with_the_disturbance_cost():
+    cfg = load_config(HAIM_DRL_YAML)
+    assert method_name(cfg) == "HAIM-DRL"
+    changed = {k: v for k, v in leaves(to_container(cfg)).items() if leaves(defaults())[k] != v}
+    assert changed == {"physics.enabled": False, "selector.enabled": False, "disturbance.enabled": True}
+    assert (cfg.disturbance.threshold, cfg.disturbance.horizon) == (5.0, 3.0)  # HAIM-DRL's 5 m/s^2
+    assert (cfg.loss.disturbance_weight, cfg.loss.num_disturbance_qvalue_nets) == (1.0, 2)  # its own twin critic
+    smoke = load_config(HAIM_DRL_YAML, ["profile=smoke", "loss.disturbance_weight=0.5"])
+    assert smoke.collector.total_frames == 300 and smoke.loss.disturbance_weight == 0.5
+    assert not load_config().disturbance.enabled  # PE-RLHF (and HACO) stay without it
+
+
+def test_selector_without_physics_is_an_error():
+    with pytest.raises(ConfigError, match=r"selector\.enabled=True .*physics\.enabled"):
+        load_config(overrides=["physics.enabled=false"])
+    with pytest.raises(ConfigError, match=r"physics\.enabled=True .*selector\.enabled"):
+        load_config(overrides=["selector.enabled=false"])
+
+
+def test_selector_needs_warmup():
+    with pytest.raises(ConfigError, match="collector.warmup_steps=0"):
+        load_config(overrides=["collector.warmup_steps=0"])
+    load_config(overrides=["collector.warmup_steps=0", "selector.enabled=false", "physics.enabled=false"])
+
+
+def test_physics_config_follows_the_switches():
+    cfg = load_config(overrides=["physics.use_mobil=false", "physics.see_obstacles=true"])
+    phy = physics_config(cfg)
+    assert (phy.use_idm, phy.use_mobil, phy.see_obstacles, phy.stop_for_obstacles) == (True, False, True, True)
+    assert physics_config(load_config()).stop_for_obstacles  # the default: brakes for obstacles
+    assert not physics_config(load_config(overrides=["physics.stop_for_obstacles=false"])).stop_for_obstacles
+
+
+@pytest.mark.parametrize("overrides, expected", [
+    ([], -0.5),  # the default, the physics forecast: seconds
+    (["selector.value=expert"], 1.5),  # the packaged expert: the authors' threshold
+    (["selector.value=warmup"], 0.5),  # the paper's table
+    (["selector.value=forecast"], -0.5),  # seconds, calibrated on train scenes
+    (["selector.value=forecast", "selector.epsilon_select=0.25"], 0.25),  # a set value always wins
+])
+def test_epsilon_select_null_takes_the_value_sources_own(overrides, expected):
+    cfg = load_config(overrides=overrides)
+    assert epsilon_select(cfg) == expected
+
+
+@pytest.mark.parametrize("overrides, expected", [
+    ([], False),  # the default: the paper's warm-up, which bypasses the selector
+    (["selector.warmup_selection=auto"], True),  # the forecast needs no fit: it can judge the warm-up too
+    (["selector.warmup_selection=auto", "selector.value=expert"], True),
+    (["selector.warmup_selection=auto", "selector.value=warmup"], False),  # fitted on the warm-up: it cannot
+    (["selector.warmup_selection=auto", "collector.warmup_policy=runs/x"], False),  # a trained policy drives it
+    (["selector.warmup_selection=true"], True),
+    (["selector.warmup_selection=auto", "selector.enabled=false", "physics.enabled=false"], False),  # HACO
+])
+def test_warmup_selection_auto(overrides, expected):
+    assert warmup_selection(load_config(overrides=overrides)) is expected
+
+
+@pytest.mark.parametrize("overrides, message", [
+    (["selector.value=warmup"], "not fitted on the warm-up"),
+    (["collector.warmup_policy=runs/x"], "collector.warmup_policy drives it"),
+])
+def test_warmup_selection_true_where_it_cannot_work_names_why(overrides, message):
+    with pytest.raises(ConfigError, match=message) as info:
+        load_config(overrides=[*overrides, "selector.warmup_selection=true"])
+    assert info.value.field == "selector.warmup_selection"
+
+
+def test_configuration_reference_page_is_the_rules_own_table():
+    """docs/guide/configuration.md shows every field, its default and what is allowed, as the rules say it."""
+    from pe_rlhf.algorithms.proxy_q.config import RULES, reference_table
+
+    table = reference_table()
+    page = (Path(__file__).resolve().parents[3] / "docs" / "guide" / "configuration.md").read_text()
+    assert table in page, ("regenerate the table: python -c 'from pe_rlhf.algorithms.proxy_q.config import "
+                           "reference_table; print(reference_table())'")
+    assert len(table.splitlines()) == len(RULES) + 2
+    assert "| `optim.lr` | `0.0001` | must be a finite number > 0 |" in table
+    assert "| `collector.warmup_policy` | `null` | a non-empty string, or null |" in table
