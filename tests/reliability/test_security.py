@@ -188,3 +188,41 @@ def test_wandb_offline_run_stays_on_this_machine(tmp_path, monkeypatch, no_netwo
         logger.log(1, {"train/takeover_rate": 0.5})
         assert logger.wandb_run.offline
     assert list((tmp_path / "wandb").glob("offline-run-*/run-*.wandb"))
+
+
+TELEMETRY_PROBE = """
+import socket, sys, tempfile
+from pathlib import Path
+attempts, lookup = [], socket.getaddrinfo
+def guarded(host, *args, **kwargs):
+    if host not in ("localhost", "127.0.0.1", "::1", None, ""):
+        attempts.append(host)
+        raise OSError(f"blocked {host}")
+    return lookup(host, *args, **kwargs)
+socket.getaddrinfo = guarded
+from pe_rlhf.runtime.metrics_logger import MetricsLogger
+with MetricsLogger(Path(tempfile.mkdtemp()), wandb=True, config={"lr": 1e-4}) as logger:
+    logger.log(1, {"train/takeover_rate": 0.5})
+from wandb.analytics.opentelemetry import opentelemetry_proxy
+proxy = opentelemetry_proxy.get_open_telemetry_proxy()
+if proxy is not None:
+    proxy.shutdown()  # exports whatever telemetry the process recorded, now rather than on a timer
+print("ATTEMPTS", attempts)
+"""
+
+
+def test_wandb_offline_run_sends_no_telemetry(tmp_path):
+    """wandb records telemetry whatever the run's mode and a background thread posts it to its server (once seen
+    as a network access in this suite): an offline run turns it off. In a fresh process, so that no earlier wandb
+    use in this one decides; the telemetry is flushed at once instead of on wandb's timer."""
+    pytest.importorskip("wandb")
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k != "WANDB_ERROR_REPORTING"}
+    env["WANDB_SILENT"] = "true"
+    done = subprocess.run([sys.executable, "-c", TELEMETRY_PROBE], env=env, capture_output=True, text=True,
+                          timeout=120, cwd=tmp_path)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "ATTEMPTS []" in done.stdout, done.stdout[-2000:]

@@ -85,8 +85,9 @@ class MetricsLogger:
     """Log ``{name: number}`` per step to ``out_dir/metrics.csv``, wandb, TensorBoard and/or MLflow.
 
     In: ``out_dir`` (created); ``csv`` writes ``metrics.csv``; ``wandb`` starts a run (TorchRL's
-    ``WandbLogger``; ``mode="offline"`` by default, files under ``out_dir/wandb``, ``WANDB_SILENT`` set,
-    so nothing touches the network unless ``wandb_mode="online"``); ``tensorboard`` writes event files to
+    ``WandbLogger``; ``mode="offline"`` by default, files under ``out_dir/wandb``, ``WANDB_SILENT`` set and, offline,
+    ``WANDB_ERROR_REPORTING=false`` (wandb's telemetry), so nothing touches the network unless
+    ``wandb_mode="online"``); ``tensorboard`` writes event files to
     ``out_dir/tensorboard`` (``TensorboardLogger``) and raises ``ImportError`` at construction when the
     ``tensorboard`` package is missing; ``mlflow`` logs to ``$MLFLOW_TRACKING_URI``, else to the file
     store ``out_dir/mlruns`` (``MLFlowLogger``, experiment ``wandb_project``; ``mlflow`` imported only
@@ -234,6 +235,11 @@ class MetricsLogger:
 
     def _start_wandb(self, mode: str, project: str):
         os.environ.setdefault("WANDB_SILENT", "true")
+        if mode != "online":
+            # wandb records its own telemetry whatever the run's mode and posts it to its server from a background
+            # thread (an offline run's process reached api.forge.coreweave.com); WANDB_ERROR_REPORTING=false stops
+            # the recording, so an offline run sends nothing. setdefault: a user's own setting wins.
+            os.environ.setdefault("WANDB_ERROR_REPORTING", "false")
         try:
             import wandb  # noqa: F401
             from torchrl.record.loggers.wandb import WandbLogger
