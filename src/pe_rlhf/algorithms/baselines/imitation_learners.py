@@ -51,6 +51,7 @@ from pe_rlhf.algorithms.baselines.imitation import (
 )
 from pe_rlhf.modules import make_actor
 from pe_rlhf.runtime.update import update
+from pe_rlhf.transforms.keys import INTERVENTION, INTERVENTION_START
 
 
 class GAILLearner(PPOLearner):
@@ -117,10 +118,10 @@ class TakeoverCounts(nn.Module):
 
     def add(self, batch: TensorDictBase) -> dict[str, float]:
         nxt = batch.get("next")
-        steps, takeovers = float(batch.numel()), float(nxt.get("intervention").sum())
+        steps, takeovers = float(batch.numel()), float(nxt.get(INTERVENTION).sum())
         self.env_steps += steps
         self.takeover_steps += takeovers
-        self.takeover_starts += float(nxt.get("intervention_start").sum())
+        self.takeover_starts += float(nxt.get(INTERVENTION_START).sum())
         return {"train/takeover_rate": takeovers / max(steps, 1.0)}
 
     def columns(self, dataset_size: int) -> dict[str, float]:

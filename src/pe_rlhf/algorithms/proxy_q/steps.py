@@ -7,6 +7,8 @@ import torch
 from tensordict import TensorDictBase
 
 from pe_rlhf.modules import add_next_actions
+from pe_rlhf.transforms.keys import (BEHAVIOR_ACTION, INTERVENTION, INTERVENTION_COST, INTERVENTION_START,
+                                     MENTOR_SELECTED)
 
 
 def ensemble_transitions(batch: TensorDictBase) -> TensorDictBase:
@@ -20,7 +22,7 @@ def ensemble_transitions(batch: TensorDictBase) -> TensorDictBase:
     ``batch``: a flat ``(T,)`` run of consecutive steps from the collector.
     """
     td = batch.select("observation", "next", strict=False).clone()
-    td.set("action", td.get(("next", "behavior_action")).clone())
+    td.set("action", td.get(("next", BEHAVIOR_ACTION)).clone())
     return add_next_actions(td)
 
 
@@ -41,12 +43,12 @@ def relabel_warmup(batch: TensorDictBase, keep_agent_action: bool = True) -> Ten
     batch = batch.clone(False)
     nxt = batch.get("next")
     if keep_agent_action:
-        nxt.set("intervention", torch.ones_like(nxt.get("intervention")))
+        nxt.set(INTERVENTION, torch.ones_like(nxt.get(INTERVENTION)))
     else:
-        batch.set("action", nxt.get("behavior_action").clone())
-        nxt.set("intervention", torch.zeros_like(nxt.get("intervention")))
-    nxt.set("intervention_start", torch.zeros_like(nxt.get("intervention_start")))
-    nxt.set("intervention_cost", torch.zeros_like(nxt.get("intervention_cost")))
+        batch.set("action", nxt.get(BEHAVIOR_ACTION).clone())
+        nxt.set(INTERVENTION, torch.zeros_like(nxt.get(INTERVENTION)))
+    nxt.set(INTERVENTION_START, torch.zeros_like(nxt.get(INTERVENTION_START)))
+    nxt.set(INTERVENTION_COST, torch.zeros_like(nxt.get(INTERVENTION_COST)))
     return batch
 
 
@@ -56,17 +58,17 @@ def batch_metrics(batch: TensorDictBase) -> dict[str, float]:
     has HAIM-DRL's ``("next", "disturbance_cost")``."""
     nxt = batch.get("next")
     sim_error = nxt.get("sim_error", None)
-    intervention = nxt.get("intervention").squeeze(-1)
-    selected = nxt.get("mentor_selected").squeeze(-1) & intervention
+    intervention = nxt.get(INTERVENTION).squeeze(-1)
+    selected = nxt.get(MENTOR_SELECTED).squeeze(-1) & intervention
     done = nxt.get("done").squeeze(-1)
     disturbance = nxt.get("disturbance_cost", None)
     return {
         **({"disturbance_cost": float(disturbance.sum())} if disturbance is not None else {}),
         "steps": float(intervention.numel()),
         "takeover_steps": float(intervention.sum()),
-        "takeover_starts": float(nxt.get("intervention_start").sum()),
+        "takeover_starts": float(nxt.get(INTERVENTION_START).sum()),
         "mentor_chosen_steps": float(selected.sum()),
-        "intervention_cost": float(nxt.get("intervention_cost").sum()),
+        "intervention_cost": float(nxt.get(INTERVENTION_COST).sum()),
         "safety_violations": float(nxt.get("cost").sum()),
         "episodes": float(done.sum()),
         "successes": float((nxt.get("success").squeeze(-1) & done).sum()),
