@@ -1,8 +1,12 @@
-"""Load a stand-alone script (a recipe's ``train.py``, a ``benchmarks/`` file) as a module, for tests."""
+"""Load a stand-alone script (a recipe's ``train.py``, a ``benchmarks/`` file) as a module, or run a recipe as a
+user would, for tests."""
 
 from __future__ import annotations
 
 import importlib.util
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -20,3 +24,15 @@ def load_script(relative_path: str, name: str | None = None):
 def load_pe_rlhf_recipe():
     """``recipes/pe_rlhf/train.py`` as a module (its ``main(argv)`` runs the recipe)."""
     return load_script("recipes/pe_rlhf/train.py", "pe_rlhf_recipe")
+
+
+# A recipe run as a user runs it: this checkout's src first, headless, one thread, no debug tracebacks.
+SCRIPT_ENV = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT / "src"), os.environ.get("PYTHONPATH", "")]),
+              "SDL_VIDEODRIVER": "dummy", "OMP_NUM_THREADS": "1"}
+SCRIPT_ENV.pop("PE_RLHF_DEBUG", None)
+
+
+def run_recipe(recipe: str, *argv: str, cwd: Path) -> subprocess.CompletedProcess:
+    """``python recipes/<recipe>/train.py *argv`` in a fresh process from ``cwd`` (output captured, 300 s)."""
+    return subprocess.run([sys.executable, str(ROOT / "recipes" / recipe / "train.py"), *argv], cwd=cwd,
+                          env=SCRIPT_ENV, capture_output=True, text=True, timeout=300, check=False)

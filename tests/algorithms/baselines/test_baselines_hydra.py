@@ -4,15 +4,13 @@ source of defaults, its profiles as the ``profile`` config group (beside the PE-
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 import yaml
 from omegaconf import OmegaConf
 
+from _scripts import run_recipe
 from pe_rlhf.algorithms.baselines import METHODS, default_config, load_baseline_config
 from pe_rlhf.algorithms.baselines.config import rules
 from pe_rlhf.runtime.config import save_config, to_container
@@ -20,27 +18,19 @@ from pe_rlhf.runtime.config_rules import ConfigError
 from pe_rlhf.algorithms.proxy_q.config import load_config
 
 ROOT = Path(__file__).resolve().parents[3]
-ENV = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT / "src"), os.environ.get("PYTHONPATH", "")]),
-       "SDL_VIDEODRIVER": "dummy", "OMP_NUM_THREADS": "1"}
-ENV.pop("PE_RLHF_DEBUG", None)
-
-
-def script(method: str, *argv: str, cwd: Path) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, str(ROOT / "recipes" / method / "train.py"), *argv], cwd=cwd, env=ENV,
-                          capture_output=True, text=True, timeout=300, check=False)
 
 
 @pytest.mark.parametrize("method, override", [("sac_lag", "constraint.cost_limit=0.2"), ("iwr", "mentor.seed=4")])
 def test_cfg_job_prints_the_composed_config_and_leaves_the_directory_alone(tmp_path, method, override):
     argv = ["profile=smoke", "seed=3", "optim.lr=3e-4", "env.traffic_density=0.2", override]
-    proc = script(method, *argv, "--cfg", "job", cwd=tmp_path)
+    proc = run_recipe(method, *argv, "--cfg", "job", cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert yaml.safe_load(proc.stdout) == to_container(load_baseline_config(method, overrides=argv))
     assert list(tmp_path.iterdir()) == []  # no outputs/, .hydra/, multirun/ or log file
 
 
 def test_a_bad_value_from_the_script_is_one_line_naming_field_value_and_what_is_allowed(tmp_path):
-    proc = script("bc", "optim.lr=-1", "--out", str(tmp_path / "run"), cwd=tmp_path)
+    proc = run_recipe("bc", "optim.lr=-1", "--out", str(tmp_path / "run"), cwd=tmp_path)
     assert proc.returncode == 2
     assert proc.stderr == "error: optim.lr=-1 is invalid: must be a finite number > 0\n"
     assert list(tmp_path.iterdir()) == []

@@ -3,15 +3,13 @@
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 import yaml
 from omegaconf import OmegaConf
 
+from _scripts import run_recipe
 from pe_rlhf.runtime.config import to_container
 from pe_rlhf.runtime.config_compose import compose_file
 from pe_rlhf.runtime.config_rules import ConfigError
@@ -20,21 +18,13 @@ from pe_rlhf.algorithms.proxy_q.config import finish_config, load_config
 from pe_rlhf.algorithms.proxy_q.config_schema import PROXY_Q
 
 ROOT = Path(__file__).resolve().parents[3]
-ENV = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT / "src"), os.environ.get("PYTHONPATH", "")]),
-       "SDL_VIDEODRIVER": "dummy", "OMP_NUM_THREADS": "1"}
-ENV.pop("PE_RLHF_DEBUG", None)
-
-
-def script(recipe: str, *argv: str, cwd: Path) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, str(ROOT / "recipes" / recipe / "train.py"), *argv], cwd=cwd, env=ENV,
-                          capture_output=True, text=True, timeout=300, check=False)
 
 
 @pytest.mark.parametrize("recipe, method", [("pe_rlhf", (True, True, False)), ("haco", (False, False, False)),
                                             ("haim_drl", (False, False, True))])
 def test_cfg_job_prints_the_composed_config_and_leaves_the_directory_alone(tmp_path, recipe, method):
-    proc = script(recipe, "profile=smoke", "seed=3", "optim.lr=3e-4", "env.traffic_density=0.2", "--cfg", "job",
-                  cwd=tmp_path)
+    proc = run_recipe(recipe, "profile=smoke", "seed=3", "optim.lr=3e-4", "env.traffic_density=0.2", "--cfg", "job",
+                      cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr[-2000:]
     printed = yaml.safe_load(proc.stdout)
     expected = to_container(load_config(ROOT / "recipes" / recipe / "config.yaml",
@@ -45,7 +35,7 @@ def test_cfg_job_prints_the_composed_config_and_leaves_the_directory_alone(tmp_p
 
 
 def test_a_bad_value_from_the_script_is_one_line_naming_field_value_and_what_is_allowed(tmp_path):
-    proc = script("pe_rlhf", "optim.lr=-1", "--out", str(tmp_path / "run"), cwd=tmp_path)
+    proc = run_recipe("pe_rlhf", "optim.lr=-1", "--out", str(tmp_path / "run"), cwd=tmp_path)
     assert proc.returncode == 2
     assert proc.stderr == "error: optim.lr=-1 is invalid: must be a finite number > 0\n"
     assert list(tmp_path.iterdir()) == []
