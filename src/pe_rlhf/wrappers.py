@@ -35,10 +35,12 @@ from tensordict import TensorDictBase
 from torchrl.data import Composite
 from torchrl.envs.gym_like import BaseInfoDictReader
 
-from pe_rlhf.transforms.takeover_core import OUT_KEYS, TakeoverCore, TakeoverStep, takeover_specs, takeover_tensors
+from pe_rlhf.transforms.keys import (BEHAVIOR_ACTION, INTERVENTION, INTERVENTION_COST, INTERVENTION_START,
+                                     MENTOR_ACTION, MENTOR_SELECTED, OUT_KEYS, PHYSICS_ACTION)
+from pe_rlhf.transforms.takeover_core import TakeoverCore, TakeoverStep, takeover_specs, takeover_tensors
 
 # TorchRL key <- info key (the rest of OUT_KEYS keep their names).
-INFO_KEY = {key: key for key in OUT_KEYS} | {"behavior_action": "teleop_action"}
+INFO_KEY = {key: key for key in OUT_KEYS} | {BEHAVIOR_ACTION: "teleop_action"}
 
 
 class InterventionWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
@@ -85,15 +87,15 @@ class InterventionWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         info = {
             "is_intervention": d.intervention,
             "teleop_action": d.behavior_action.copy(),
-            "intervention": d.intervention,
-            "intervention_start": d.intervention_start,
-            "intervention_cost": d.intervention_cost,
-            "mentor_action": d.mentor_action.copy(),
-            "mentor_selected": d.mentor_selected,
+            INTERVENTION: d.intervention,
+            INTERVENTION_START: d.intervention_start,
+            INTERVENTION_COST: d.intervention_cost,
+            MENTOR_ACTION: d.mentor_action.copy(),
+            MENTOR_SELECTED: d.mentor_selected,
             "agent_action": np.array(action, dtype=np.float32),
         }
         if self.core.physics is not None:
-            info["physics_action"] = d.physics_action.copy()
+            info[PHYSICS_ACTION] = d.physics_action.copy()
         return info
 
     @property

@@ -20,6 +20,7 @@ from pe_rlhf.envs import DrivingConfig
 from pe_rlhf.envs.observation import observation_size
 from pe_rlhf.modules.networks import make_actor
 from pe_rlhf.runtime.checkpoint import list_checkpoints
+from pe_rlhf.runtime.recipe import report_final
 from pe_rlhf.runtime.run import ACTOR_FILE, Learner, Run, next_multiple
 
 BATCH = 10
@@ -176,3 +177,81 @@ def test_resume_refuses_another_env_config(tmp_path):
     other.env_config = DrivingConfig(lidar_beams=8, horizon=30, min_blocks=1, max_blocks=1, split="train")
     with pytest.raises(ValueError, match=r"env\.horizon: checkpoint 20, now 30"):
         _run(tmp_path, other, total=40).train(tmp_path, resume=True)
+
+
+FAST, STOP = torch.tensor([0.0, 3.0]), torch.tensor([0.0, -3.0])  # pre-tanh loc: full throttle, full brake
+
+
+class SwitchingLearner(RegressionLearner):
+    """Learns to drive (full throttle) until ``switch_at``, then to stand still: its middle actor is its best."""
+
+    def __init__(self, total: int, switch_at: int, seed: int = 0):
+        super().__init__(total, seed)
+        self.switch_at = switch_at
+        self.optimizer = torch.optim.Adam(self.actor.parameters(), lr=0.05)
+
+    def learn(self, batch) -> dict[str, float]:
+        target = FAST if self.progress < self.switch_at else STOP
+        loss = (self.actor.module[0](batch)["loc"] - target).pow(2).mean()
+        self.optimizer.zero_grad()
+        loss.backward()
+        self.optimizer.step()
+        self.progress, self.updates = self.progress + BATCH, self.updates + 1
+        return {"loss": loss.item()}
+
+
+def _picking_run(tmp_path, learner, logger=None, *, total=300, every=50):
+    cfg = _cfg()
+    cfg.actor_selection = SimpleNamespace(every_frames=every, episodes=1, split="train")
+    return Run(cfg, learner, logger or ListLogger(), tmp_path / "checkpoints", total=total, eval_every=0,
+               checkpoint_every=50)
+
+
+def test_the_actor_picked_on_train_scenes_is_the_best_snapshot_not_the_last(tmp_path, capsys):
+    logger = ListLogger()
+    learner = SwitchingLearner(total=300, switch_at=100)
+    final = _picking_run(tmp_path, learner, logger).train(tmp_path)
+    scores = {int(k): v["route_completion"] for k, v in final["actor_selection"]["scores"].items()}
+    assert sorted(scores) == [50, 100, 150, 200, 250, 300]
+    # the throttle actors drive further than the braking ones, and the best of them is the one kept
+    assert min(scores[50], scores[100]) > max(scores[250], scores[300])
+    picked = max(scores, key=lambda s: (scores[s], s))
+    assert final["actor_selection"]["picked_step"] == picked and picked < 300
+    # the final evaluation is the picked actor's; the last actor's stays beside it
+    assert final["route_completion"]["mean"] > final["last_actor"]["route_completion"]["mean"]
+    assert "episodes_detail" not in final["last_actor"]
+    # actor.pt holds the picked weights: those of the checkpoint at the picked step
+    saved = torch.load(tmp_path / ACTOR_FILE, weights_only=True)
+    at_pick = torch.load(tmp_path / "checkpoints" / f"ckpt_{picked:09d}" / "tensors.pt", weights_only=True)
+    for k, v in saved.items():
+        assert torch.equal(v, at_pick["modules"]["actor"][k]), k
+        assert not torch.equal(v, learner.actor.state_dict()[k]), k
+    # each scoring adds its columns to a row
+    rows = dict(logger.rows)
+    assert rows[300]["actor_selection/picked_step"] == picked
+    assert rows[50]["actor_selection/route_completion"] == scores[50]
+    # the recipes' final table: the last actor's row above the picked one's, and which frames they are
+    capsys.readouterr()
+    report_final(tmp_path, "regression", final, None, _cfg())
+    out = capsys.readouterr().out
+    assert f"regression: the actor of frame {picked}, picked on 1 train scenes" in out
+    assert "'last': the actor of frame 300" in out and out.index(" last ") < out.index(" regression ")
+
+
+def test_a_resumed_run_picks_as_the_uninterrupted_one(tmp_path):
+    whole = _picking_run(tmp_path / "whole", SwitchingLearner(total=300, switch_at=100))
+    expected = whole.train(tmp_path / "whole")["actor_selection"]
+    cut = tmp_path / "cut"
+    _picking_run(cut, SwitchingLearner(total=150, switch_at=100), total=150).train(cut)
+    again = _picking_run(cut, SwitchingLearner(total=300, switch_at=100, seed=7))
+    got = again.train(cut, resume=True)["actor_selection"]
+    assert got == expected
+    for k, v in torch.load(tmp_path / "whole" / ACTOR_FILE, weights_only=True).items():
+        assert torch.equal(v, torch.load(cut / ACTOR_FILE, weights_only=True)[k]), k
+
+
+def test_actor_selection_refuses_test_scenes(tmp_path):
+    cfg = _cfg()
+    cfg.actor_selection = SimpleNamespace(every_frames=50, episodes=1, split="test")
+    with pytest.raises(ValueError, match="train scenes only"):
+        Run(cfg, RegressionLearner(total=50), ListLogger(), None, total=50, eval_every=0, checkpoint_every=0)

@@ -1,5 +1,5 @@
 """What every recipe's structured config is built of: a field with its default and rule, an open group, the
-``logger`` group.
+``logger`` group and the ``actor_selection`` group.
 
 Each family declares its config as dataclasses of :func:`knob` fields (:mod:`pe_rlhf.algorithms.proxy_q.config_schema`
 for PE-RLHF, HACO and HAIM-DRL; :mod:`pe_rlhf.algorithms.baselines.config_schema` and
@@ -45,4 +45,13 @@ class LoggerConfig:
     log_every: int = knob(1, rule_int(1))  # iterations between log lines
 
 
-__all__ = ["OPEN_GROUPS", "LoggerConfig", "knob", "open_group"]
+@dataclass
+class ActorSelectionConfig:
+    """Picking the run's actor on train scenes (:mod:`pe_rlhf.runtime.actor_selection`)."""
+
+    every_frames: int = knob(0, rule_int(0))  # 0: the last actor is the run's actor
+    episodes: int = knob(20, rule_int(1))  # the first this many scenes of the split
+    split: str = knob("train", rule_choice("train"))  # train scenes only: the test scenes are for the final evaluation
+
+
+__all__ = ["OPEN_GROUPS", "ActorSelectionConfig", "LoggerConfig", "knob", "open_group"]

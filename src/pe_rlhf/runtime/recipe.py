@@ -165,11 +165,20 @@ def report_final(out: Path, name: str, final: dict, compare: str | None, cfg) ->
     """Print the final table (with ``compare``, a reference policy on the same scenes, saved as
     ``reference_<policy>.json``) and where the outputs are; shared by every recipe's entry point."""
     rows = [(name, final)]
+    picking = final.get("actor_selection")
+    if picking is not None:  # the last actor's row above the picked one's
+        rows.insert(0, ("last", final["last_actor"]))
     if compare:
         reference = evaluate_reference(compare, cfg)
         write_json(out / f"reference_{compare}.json", reference)
         rows.insert(0, (compare, reference))
     print_summary(rows)
+    if picking is not None:
+        step, last = picking["picked_step"], max(map(int, picking["scores"]))
+        score = picking["scores"][str(step)]
+        print(f"{name}: the actor of frame {step}, picked on {picking['episodes']} train scenes (success "
+              f"{score['success_rate']:.2f}, route completion {score['route_completion']:.2f}); 'last': the actor "
+              f"of frame {last}")
     print(f"outputs in {out}")
 
 

@@ -14,6 +14,10 @@ finish that every recipe shares.
 4. a non-finite loss, gradient or parameter (``FloatingPointError``): a checkpoint of what there is, and the
    error, saying where it is;
 5. the finish: a last checkpoint, the final evaluation with the learner's ``summary``, ``actor.pt``.
+
+With ``actor_selection.every_frames`` (a config group; 0 or absent: off) the actor is also scored every that many
+units on train scenes, and the best snapshot, not the last, becomes the run's actor
+(:mod:`pe_rlhf.runtime.actor_selection`).
 """
 
 from __future__ import annotations
@@ -27,6 +31,7 @@ import torch
 from tqdm import tqdm
 
 from pe_rlhf.evaluation import TorchRLPolicyAdapter, evaluate
+from pe_rlhf.runtime.actor_selection import SELECTED_MODULE, ActorSelection
 from pe_rlhf.runtime.checkpoint import find_checkpoint, load_checkpoint, save_checkpoint
 from pe_rlhf.threads import torch_threads
 
@@ -88,6 +93,11 @@ class Run:
         self.total, self.eval_every, self.checkpoint_every = int(total), int(eval_every), int(checkpoint_every)
         self.iterations, self.saved_step, self.started = 0, -1, time.time()
         self.seconds = dict.fromkeys((*learner.timers, "eval", "earlier_sessions"), 0.0) if learner.timers else {}
+        picking = getattr(cfg, "actor_selection", None)  # absent (the baselines' configs): off
+        self.selection = None
+        if picking is not None and int(picking.every_frames) > 0:
+            self.selection = ActorSelection(learner.actor, int(picking.every_frames), int(picking.episodes),
+                                            str(picking.split))
 
     @property
     def progress(self) -> int:
@@ -122,6 +132,7 @@ class Run:
                 self.timed(1, t)
                 self.logger.log(0, {**row, "wall_time": self.wall_time()})
         self.next_eval = next_multiple(self.progress, self.eval_every)
+        self.next_pick = next_multiple(self.progress, self.selection.every if self.selection else 0)
         self.next_ckpt = next_multiple(self.progress, self.checkpoint_every)
         self.bar = tqdm(total=self.total, initial=self.progress, desc=self.learner.name, unit=self.learner.unit)
         self.learner.start()
@@ -151,9 +162,15 @@ class Run:
             with self.learner.paused():
                 summary = self.evaluate()
             row.update({f"eval/{k}_{s}": summary[k][s] for k in EVAL_KEYS for s in ("mean", "std")})
+        picked = self.selection is not None and self.progress >= self.next_pick
+        if picked:
+            self.next_pick = next_multiple(self.progress, self.selection.every)
+            with self.learner.paused():
+                self.score_actor()
+            row.update(self.selection.row())
         row["wall_time"] = self.wall_time()
         row.update({f"time/{k}_seconds": v for k, v in self.seconds.items() if k != "earlier_sessions"})
-        if self.done or evaluated or self.iterations % int(self.cfg.logger.log_every) == 0:
+        if self.done or evaluated or picked or self.iterations % int(self.cfg.logger.log_every) == 0:
             self.logger.log(self.progress, row)
         self.bar.update(self.progress - before)
         self.bar.set_postfix(self.learner.postfix(row), refresh=False)
@@ -162,21 +179,38 @@ class Run:
             with self.learner.paused():  # networks, optimisers and counters from one moment
                 self.save()
 
-    def evaluate(self) -> dict:
+    def evaluate(self, actor=None, split: str | None = None, episodes: int | None = None) -> dict:
+        """A deterministic evaluation of ``actor`` (the learner's) on ``eval.split`` and ``eval.episodes``
+        unless given."""
         t = time.time()
         with torch_threads(1):
-            summary = evaluate_actor(self.learner.actor, self.cfg, self.learner.env_config,
-                                     int(self.cfg.eval.episodes))
+            summary = evaluate_actor(self.learner.actor if actor is None else actor, self.cfg,
+                                     self.learner.env_config, int(self.cfg.eval.episodes if episodes is None
+                                                                  else episodes), split)
         self.timed("eval", t)
         return summary
+
+    def score_actor(self) -> None:
+        """Score the learner's actor on the selection's train scenes, keeping it if it is the best so far."""
+        summary = self.evaluate(split=self.selection.split, episodes=self.selection.episodes)
+        self.selection.consider(self.learner.actor, self.progress, summary)
+
+    def checkpoint_objects(self, checkpoint=None) -> dict:
+        """The learner's objects, with the picked actor's copy among the modules when the run picks one."""
+        objects = self.learner.checkpoint_objects(checkpoint)
+        if self.selection is None:
+            return objects
+        return {**objects, "modules": {**objects["modules"], SELECTED_MODULE: self.selection.actor}}
 
     def save(self) -> Path:
         """A checkpoint of the learner and the run at the current progress (the learner paused or stopped)."""
         state = {**self.learner.state_dict(), "iterations": self.iterations, "run": self.run_info()}
+        if self.selection is not None:
+            state["actor_selection"] = self.selection.state_dict()
         if self.seconds:
             state["seconds"] = dict(self.seconds, earlier_sessions=self.wall_time())
         path = save_checkpoint(self.checkpoint_dir, step=self.progress, keep=int(self.cfg.checkpoint.keep),
-                               **self.learner.checkpoint_objects(), state=state)
+                               **self.checkpoint_objects(), state=state)
         self.saved_step = self.progress
         self.learner.saved(self.saved_step)
         return path
@@ -186,8 +220,10 @@ class Run:
         checkpoint = find_checkpoint(self.checkpoint_dir)
         if checkpoint is None:
             raise FileNotFoundError(f"no complete checkpoint under {self.checkpoint_dir}")
-        state = load_checkpoint(checkpoint, **self.learner.checkpoint_objects(checkpoint))
+        state = load_checkpoint(checkpoint, **self.checkpoint_objects(checkpoint))
         check_resumable(state.get("run"), self.run_info(), checkpoint)
+        if self.selection is not None:
+            self.selection.load_state_dict(state["actor_selection"])
         self.saved_step, self.iterations = int(state["step"]), int(state.get("iterations", 0))
         if self.seconds and "seconds" in state:
             self.seconds = {k: float(v) for k, v in state["seconds"].items()}
@@ -212,11 +248,20 @@ class Run:
         self.learner.stop()
         if self.checkpoint_dir is not None and self.progress > self.saved_step:
             self.save()
-        final = self.evaluate()
+        actor = self.learner.actor
+        final = last = self.evaluate()
+        if self.selection is not None:  # the last actor's evaluation stays beside the picked one's
+            if self.progress not in self.selection.scores:
+                self.score_actor()
+            if self.selection.step != self.progress:
+                actor = self.selection.actor
+                final = self.evaluate(actor)
+            final["last_actor"] = {k: v for k, v in last.items() if k not in ("episodes_detail", "env_config")}
+            final["actor_selection"] = self.selection.summary()
         final.update(self.learner.summary(out_dir))
         if self.seconds:
             final["training"].update(wall_time_s=self.wall_time(), **{f"{k}_s": v for k, v in self.seconds.items()})
-        actor = self.learner.actor.state_dict()
+        actor = actor.state_dict()
         torch.save({k: v.detach().cpu() for k, v in actor.items()}, out_dir / ACTOR_FILE)
         return final
 
@@ -226,11 +271,11 @@ def next_multiple(progress: float, every: int) -> float:
     return float("inf") if every <= 0 else (int(progress) // every + 1) * every
 
 
-def evaluate_actor(actor, cfg, env_config, episodes: int) -> dict:
-    """Deterministic evaluation of the actor on the first ``episodes`` seeds of ``eval.split``."""
+def evaluate_actor(actor, cfg, env_config, episodes: int, split: str | None = None) -> dict:
+    """Deterministic evaluation of the actor on the first ``episodes`` seeds of ``split`` (``eval.split``)."""
     from pe_rlhf.envs import scene_seeds
 
-    seeds = scene_seeds(str(cfg.eval.split))[:episodes]
+    seeds = scene_seeds(str(cfg.eval.split if split is None else split))[:episodes]
     return evaluate(TorchRLPolicyAdapter(actor), seeds, env_config, progress=False).to_dict()
 
 

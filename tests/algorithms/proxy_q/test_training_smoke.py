@@ -125,3 +125,27 @@ def test_the_same_seed_gives_the_same_metrics(smoke_run, tmp_path):
     """Two runs of one seed on one machine: every logged number and the final evaluation agree (timings aside)."""
     again = load_pe_rlhf_recipe().main([*SMOKE_RUN, "--out", str(tmp_path)])
     assert _logged(tmp_path, again) == _logged(*smoke_run)
+
+
+def test_actor_selection_in_the_recipe_keeps_the_picked_checkpoints_actor(tmp_path, capsys):
+    """actor_selection.every_frames: the PE-RLHF run scores its actor on train scenes at each checkpoint's
+    step, ``actor.pt`` is the picked one (the actor of that checkpoint), and the last one's test evaluation
+    stays in final_eval.json and in the printed table."""
+    import torch
+
+    from pe_rlhf.algorithms.proxy_q.trained_policy import load_actor
+
+    final = load_pe_rlhf_recipe().main(["profile=smoke", "eval.video=false", "actor_selection.every_frames=100",
+                                        "actor_selection.episodes=1", "checkpoint.every_frames=100",
+                                        "checkpoint.keep=3", "--out", str(tmp_path)])
+    picking = final["actor_selection"]
+    assert sorted(map(int, picking["scores"])) == [100, 200, 300] and picking["split"] == "train"
+    assert picking["picked_step"] in (100, 200, 300)
+    assert final["last_actor"]["episodes"] == final["episodes"] == 1
+    saved = torch.load(tmp_path / "actor.pt", weights_only=True)
+    at_pick = load_actor(tmp_path, checkpoint=tmp_path / "checkpoints" / f"ckpt_{picking['picked_step']:09d}")
+    for k, v in at_pick.state_dict().items():
+        assert torch.equal(saved[k], v), k
+    assert f"the actor of frame {picking['picked_step']}, picked on 1 train scenes" in capsys.readouterr().out
+    rows = list(csv.DictReader(open(tmp_path / "metrics.csv")))
+    assert [r["actor_selection/success_rate"] != "" for r in rows] == [int(float(r["step"])) % 100 == 0 for r in rows]

@@ -26,9 +26,10 @@ from torchrl.objectives import BCLoss, GAILLoss
 
 from pe_rlhf.algorithms.baselines.algorithms import _NoTargets
 from pe_rlhf.runtime.update import update
+from pe_rlhf.transforms.keys import BEHAVIOR_ACTION, INTERVENTION
 
 # A dataset row of the human-in-the-loop learners: the state, the label, whether the mentor drove.
-DATASET_KEYS = ("observation", "action", "intervention")
+DATASET_KEYS = ("observation", "action", INTERVENTION)
 
 
 class WeightedBCLoss(BCLoss):
@@ -66,9 +67,9 @@ class WeightedBCLoss(BCLoss):
 def _takeover_flags(td: TensorDictBase) -> torch.Tensor:
     """``(N,)`` bool: ``("next", "intervention")`` of a collected step (whether the mentor drove it; the root
     ``intervention`` of a collected step is the previous step's), else ``intervention`` of a dataset row."""
-    flags = td.get(("next", "intervention"), None)
+    flags = td.get(("next", INTERVENTION), None)
     if flags is None:
-        flags = td.get("intervention")
+        flags = td.get(INTERVENTION)
     return flags.reshape(-1).bool()
 
 
@@ -83,16 +84,16 @@ def hg_dagger_select(batch: TensorDictBase) -> TensorDictBase:
     flat = batch.reshape(-1)
     mask = _takeover_flags(flat)
     return TensorDict({"observation": flat.get("observation")[mask],
-                       "action": flat.get(("next", "behavior_action"))[mask],
-                       "intervention": mask[mask].unsqueeze(-1)}, batch_size=[int(mask.sum())])
+                       "action": flat.get(("next", BEHAVIOR_ACTION))[mask],
+                       INTERVENTION: mask[mask].unsqueeze(-1)}, batch_size=[int(mask.sum())])
 
 
 def executed_steps(batch: TensorDictBase) -> TensorDictBase:
     """IWR's data: every step, labelled with the executed action (the mentor's during a takeover, else the
     agent's own), with its takeover flag. Same keys and reads as :func:`hg_dagger_select`, ``(T,)`` rows."""
     flat = batch.reshape(-1)
-    return TensorDict({"observation": flat.get("observation"), "action": flat.get(("next", "behavior_action")),
-                       "intervention": _takeover_flags(flat).unsqueeze(-1)}, batch_size=[flat.numel()])
+    return TensorDict({"observation": flat.get("observation"), "action": flat.get(("next", BEHAVIOR_ACTION)),
+                       INTERVENTION: _takeover_flags(flat).unsqueeze(-1)}, batch_size=[flat.numel()])
 
 
 def demonstration_rows(demos: TensorDictBase) -> TensorDictBase:
@@ -100,7 +101,7 @@ def demonstration_rows(demos: TensorDictBase) -> TensorDictBase:
     ``intervention`` False (whole demonstrations are not corrections of the agent)."""
     n = demos.numel()
     return TensorDict({"observation": demos.get("observation"), "action": demos.get("action"),
-                       "intervention": torch.zeros(n, 1, dtype=torch.bool)}, batch_size=[n])
+                       INTERVENTION: torch.zeros(n, 1, dtype=torch.bool)}, batch_size=[n])
 
 
 def iwr_weights(data: TensorDictBase) -> torch.Tensor:

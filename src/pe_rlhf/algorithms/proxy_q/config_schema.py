@@ -38,7 +38,7 @@ from pe_rlhf.runtime.config_rules import (
     rule_string,
     rule_target_entropy,
 )
-from pe_rlhf.runtime.config_schema import LoggerConfig, knob, open_group
+from pe_rlhf.runtime.config_schema import ActorSelectionConfig, LoggerConfig, knob, open_group
 from pe_rlhf.algorithms.proxy_q.config_profiles import PROFILES
 
 BACKENDS = ("single", "multisync", "multiasync", "ray")
@@ -272,6 +272,7 @@ class RecipeConfig:
     logger: LoggerConfig = field(default_factory=LoggerConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
     checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)
+    actor_selection: ActorSelectionConfig = field(default_factory=ActorSelectionConfig)
 
 
 def _fields(schema: type, prefix: str = ""):
@@ -285,7 +286,7 @@ def _fields(schema: type, prefix: str = ""):
 
 _GROUPS = {cls.__name__: cls for cls in (MentorConfig, PhysicsConfig, SelectorConfig, CollectorConfig,
                                          ReplayBufferConfig, OptimConfig, LossConfig, DisturbanceConfig,
-                                         LoggerConfig, EvalConfig, CheckpointConfig)}
+                                         LoggerConfig, EvalConfig, CheckpointConfig, ActorSelectionConfig)}
 
 # {dotted field: rule}, every field but the open groups, in the schema's order.
 RULES: dict[str, Rule] = {name: f.metadata["rule"] for name, f in _fields(RecipeConfig) if "rule" in f.metadata}

@@ -10,6 +10,7 @@ written before that record is a baseline's when its config names a ``method``. :
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import torch
@@ -76,9 +77,10 @@ def load_run_actor(run_dir: str | Path):
     return actor
 
 
-def load_actor(run_dir: str | Path):
+def load_actor(run_dir: str | Path, checkpoint: str | Path | None = None):
     """The actor of the run in ``run_dir``: its final ``actor.pt`` if the run finished, else the actor in
-    its newest checkpoint. Reads ``config.yaml`` for the network sizes; loads with ``weights_only=True``.
+    its newest checkpoint; with ``checkpoint`` (a ``ckpt_<step>`` folder), that checkpoint's actor. Reads
+    ``config.yaml`` for the network sizes; loads with ``weights_only=True``.
     """
     from pe_rlhf.runtime.checkpoint import load_checkpoint
     from pe_rlhf.algorithms.proxy_q.config import load_config
@@ -89,7 +91,7 @@ def load_actor(run_dir: str | Path):
     cfg = load_config(run_dir / "config.yaml", apply_profile=False)
     actor = builders.build_actor(cfg)
     final = run_dir / "actor.pt"
-    if final.exists():
+    if checkpoint is None and final.exists():
         try:
             state = torch.load(final, weights_only=True, map_location="cpu")
             actor.load_state_dict(state)
@@ -97,6 +99,9 @@ def load_actor(run_dir: str | Path):
             raise ValueError(f"cannot load the actor from {final}: {type(e).__name__}: {str(e)[:200]}") from None
         return actor
     loss, _ = builders.build_loss(cfg, actor)
-    load_checkpoint(run_dir / "checkpoints", modules={"loss": loss}, optimizers={}, strict=False,
-                    restore_rng_state=False)
+    with warnings.catch_warnings():  # a checkpoint asked for by name: that later ones exist is no news
+        if checkpoint is not None:
+            warnings.filterwarnings("ignore", message=r"loading ckpt_\d+, but .* have larger steps")
+        load_checkpoint(run_dir / "checkpoints" if checkpoint is None else checkpoint, modules={"loss": loss},
+                        optimizers={}, strict=False, restore_rng_state=False)
     return actor
