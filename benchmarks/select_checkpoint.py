@@ -2,21 +2,21 @@
 
 For every finished cell of a sweep that kept a checkpoint every K frames (``recipes/sweeps/claims_select.yaml``),
 each checkpoint's actor is scored on the first ``--episodes`` train scenes and the best is picked by the rule a
-run applies with ``actor_selection.every_frames=K`` (:class:`pe_rlhf.runtime.actor_selection.ActorSelection`:
-success, then route completion, then the later one); then the picked actor and the last are evaluated on the
-test scenes. The test scenes choose nothing. The train-scene success the run logged at a checkpoint's step
-(its periodic evaluation on those scenes, ``eval.split=train``) is taken as that checkpoint's, and only the
-checkpoints tied at the best success are evaluated again for their route completion (``--rescore``: every
-checkpoint, which also checks that the logged success is what an evaluation now gives: it is deterministic).
+run applies with ``actor_selection.every_frames=K actor_selection.episodes=N``
+(:class:`pe_rlhf.runtime.actor_selection.ActorSelection`: success, then route completion, then the later one);
+then the picked actor and the last are evaluated on the test scenes. The test scenes choose nothing.
+``--holdout`` also scores every checkpoint on the train scenes the pick did not read (after the first
+``--episodes``): whether a pick holds on other train scenes, judged without the test scenes.
 
-    python benchmarks/select_checkpoint.py runs/sweeps/claims_select [--episodes 20] [--test-episodes 50]
+    python benchmarks/select_checkpoint.py runs/sweeps/claims_select [--episodes 20] [--test-episodes 50] [--holdout]
+        [--out FILE.json]
 
-Writes, in the sweep folder: ``cells_picked.csv`` and ``cells_last.csv`` (``cells.csv``'s columns with the test
-metrics of the picked and of the last actor, for ``benchmarks/claims_summary.py``) and ``select_checkpoint.json``
-(per cell: the train scores, the picked step, both test summaries, and the train-scene success the run logged at
-each step). Each cell's result
-is cached in its folder (``select_checkpoint.json``), so a rerun does only the cells not yet done. Prints a
-table, with the mean and 95% bootstrap interval of each over the cells per method.
+Every episode is cached in its cell (``select_episodes.json``: step -> scene seed -> the episode's metrics; the
+evaluation is deterministic), so a rerun, or a pick on another number of scenes, evaluates only what is missing.
+Writes, in the sweep folder: ``cells_picked_<N>.csv`` and ``cells_last.csv`` (``cells.csv``'s columns with the
+test metrics of the picked and of the last actor, for ``benchmarks/claims_summary.py``; written once the sweep
+has its ``cells.csv``) and ``select_checkpoint_<N>.json`` (per cell: the train scores, the picked step, both test
+summaries). Prints a table, and the mean and 95% bootstrap interval over the cells of each method.
 """
 
 from __future__ import annotations
@@ -33,6 +33,7 @@ from tqdm import tqdm
 from pe_rlhf.algorithms.proxy_q.trained_policy import load_actor, run_world
 from pe_rlhf.envs import scene_seeds
 from pe_rlhf.evaluation import TorchRLPolicyAdapter, evaluate
+from pe_rlhf.evaluation.evaluate import EpisodeResult, EvaluationSummary
 from pe_rlhf.evaluation.statistics import bootstrap_interval
 from pe_rlhf.runtime.actor_selection import ActorSelection
 from pe_rlhf.runtime.checkpoint import list_checkpoints
@@ -40,68 +41,64 @@ from pe_rlhf.threads import torch_threads
 
 TEST_METRICS = ("success_rate", "safety_violation", "episodic_return", "route_completion", "travel_distance",
                 "travel_velocity", "overtake_count")
-CACHE = "select_checkpoint.json"
+EPISODES_CACHE = "select_episodes.json"
 
 
-def _evaluate(actor, world, split: str, episodes: int) -> dict:
-    seeds = scene_seeds(split)[:episodes]
-    summary = evaluate(TorchRLPolicyAdapter(actor), seeds, dataclasses.replace(world, split=split),
-                       progress=False).to_dict()
-    return {k: v for k, v in summary.items() if k not in ("episodes_detail", "env_config")}
+class CellEpisodes:
+    """The evaluation episodes of one cell's checkpoints, cached in the cell (module docstring)."""
+
+    def __init__(self, cell: Path):
+        self.cell, self.path = cell, cell / EPISODES_CACHE
+        self.world = run_world(cell)
+        self.checkpoints = {int(c.name.split("_")[1]): c for c in list_checkpoints(cell / "checkpoints")}
+        if not self.checkpoints:
+            raise FileNotFoundError(f"{cell}: no checkpoints")
+        self.episodes = json.loads(self.path.read_text()) if self.path.is_file() else {}
+        self.actors: dict[int, object] = {}
+
+    def actor(self, step: int):
+        if step not in self.actors:
+            self.actors[step] = load_actor(self.cell, checkpoint=self.checkpoints[step])
+        return self.actors[step]
+
+    def summary(self, step: int, split: str, first: int, last: int) -> dict:
+        """The summary of the checkpoint at ``step`` on scenes ``scene_seeds(split)[first:last]``."""
+        seeds = scene_seeds(split)[first:last]
+        done = self.episodes.setdefault(str(step), {})
+        missing = [s for s in seeds if str(s) not in done]
+        if missing:
+            with torch_threads(1):
+                found = evaluate(TorchRLPolicyAdapter(self.actor(step)), missing,
+                                 dataclasses.replace(self.world, split=split), progress=False)
+            done.update({str(e.scene_seed): dataclasses.asdict(e) for e in found.episodes})
+            self.path.write_text(json.dumps(self.episodes) + "\n")
+        summary = EvaluationSummary([EpisodeResult(**done[str(s)]) for s in seeds], self.world).to_dict()
+        return {k: v for k, v in summary.items() if k not in ("episodes_detail", "env_config")}
 
 
-def _logged_train_success(cell: Path) -> dict[int, float]:
-    """``eval/success_rate_mean`` as the run logged it, by step (its periodic evaluation on train scenes)."""
-    with open(cell / "metrics.csv", newline="") as f:
-        return {int(float(r["step"])): float(r["eval/success_rate_mean"]) for r in csv.DictReader(f)
-                if r.get("eval/success_rate_mean") not in (None, "")}
-
-
-def select_cell(cell: Path, episodes: int, test_episodes: int, rescore: bool = False) -> dict:
-    """Score every checkpoint of ``cell`` on train scenes, pick, and evaluate the picked and the last on test."""
-    cached = cell / CACHE
-    if cached.is_file() and not rescore:
-        result = json.loads(cached.read_text())
-        if result["episodes"] == episodes and result["test_episodes"] == test_episodes:
-            return result
-    world = run_world(cell)
-    checkpoints = list_checkpoints(cell / "checkpoints")
-    if not checkpoints:
-        raise FileNotFoundError(f"{cell}: no checkpoints")
-    logged = _logged_train_success(cell)
-    if not rescore and any(int(c.name.split("_")[1]) not in logged for c in checkpoints):
-        raise ValueError(f"{cell}: metrics.csv has no train-scene evaluation at every checkpoint's step "
-                         "(run with eval.split=train and eval.every_frames=checkpoint.every_frames, or --rescore)")
-    with torch_threads(1):
-        actors = [(int(c.name.split("_")[1]), load_actor(cell, checkpoint=c)) for c in checkpoints]
-        best = max(logged[step] for step, _ in actors) if not rescore else None
-        picking = ActorSelection(actors[-1][1], every=0, episodes=episodes)
-        measured = {}
-        for step, actor in actors:
-            if rescore or logged[step] == best:
-                summary = _evaluate(actor, world, "train", episodes)
-                measured[str(step)] = summary["success_rate"]["mean"]
-            else:  # below the best on success: its route completion cannot matter
-                summary = {"success_rate": {"mean": logged[step]}, "route_completion": {"mean": float("nan")}}
-            picking.consider(actor, step, summary)
-        last_step, last = actors[-1]
-        result = {"cell": cell.name, "episodes": episodes, "test_episodes": test_episodes,
-                  "picked_step": picking.step, "last_step": last_step, "train_scores": picking.summary()["scores"],
-                  "logged_train_success": {str(k): v for k, v in logged.items()},
-                  "measured_train_success": measured,
-                  "picked": _evaluate(picking.actor, world, "test", test_episodes)}
-        result["last"] = (result["picked"] if picking.step == last_step
-                          else _evaluate(last, world, "test", test_episodes))
-    cached.write_text(json.dumps(result, indent=1) + "\n")
+def select_cell(cell: Path, episodes: int, test_episodes: int, holdout: bool = False) -> dict:
+    """Score every checkpoint of ``cell`` on the first ``episodes`` train scenes, pick, and evaluate the picked
+    and the last on the first ``test_episodes`` test scenes."""
+    runs = CellEpisodes(cell)
+    steps = sorted(runs.checkpoints)
+    picking = ActorSelection(runs.actor(steps[-1]), every=0, episodes=episodes)
+    for step in steps:
+        picking.consider(runs.actor(step), step, runs.summary(step, "train", 0, episodes))
+    result = {"cell": cell.name, "episodes": episodes, "picked_step": picking.step, "last_step": steps[-1],
+              "train_scores": picking.summary()["scores"],
+              "picked": runs.summary(picking.step, "test", 0, test_episodes),
+              "last": runs.summary(steps[-1], "test", 0, test_episodes)}
+    if holdout:
+        others = {step: runs.summary(step, "train", episodes, None) for step in steps}
+        result["holdout_train_success"] = {str(step): s["success_rate"]["mean"] for step, s in others.items()}
     return result
 
 
-def _cells_csv(sweep: Path, results: dict[str, dict], which: str) -> Path:
+def _cells_csv(sweep: Path, results: dict[str, dict], which: str, out: Path) -> Path:
     """cells.csv with the test metrics of ``which`` (picked | last) in place of the run's final evaluation."""
     with open(sweep / "cells.csv", newline="") as f:
         reader = csv.DictReader(f)
         fields, rows = reader.fieldnames, list(reader)
-    out = sweep / f"cells_{which}.csv"
     with open(out, "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=fields)
         writer.writeheader()
@@ -117,38 +114,43 @@ def _cells_csv(sweep: Path, results: dict[str, dict], which: str) -> Path:
 
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("sweep", type=Path, help="sweep folder (its cells.csv and cell folders with checkpoints)")
+    parser.add_argument("sweep", type=Path, help="sweep folder (its cell folders with checkpoints)")
     parser.add_argument("--episodes", type=int, default=20, help="train scenes that score a checkpoint")
     parser.add_argument("--test-episodes", type=int, default=50, help="test scenes of the final evaluations")
-    parser.add_argument("--rescore", action="store_true", help="evaluate every checkpoint on the train scenes again")
+    parser.add_argument("--holdout", action="store_true", help="also score every checkpoint on the train scenes "
+                        "the pick did not read (after the first --episodes), to see whether the pick holds there")
+    parser.add_argument("--only", default="", help="only the cells whose name contains this")
     args = parser.parse_args(argv)
-    if not (args.sweep / "cells.csv").is_file():
-        parser.error(f"{args.sweep}: no cells.csv (not a sweep folder, or no cell has finished)")
-    with open(args.sweep / "cells.csv", newline="") as f:
-        finished = [r["cell"] for r in csv.DictReader(f) if r["status"] == "finished"]
+    if not 1 <= args.episodes <= len(scene_seeds("train")):
+        parser.error(f"--episodes {args.episodes}: allowed 1 to {len(scene_seeds('train'))} (the train scenes)")
+    finished = sorted(p.parent.name for p in args.sweep.glob("*/final_eval.json")
+                      if (p.parent / "checkpoints").is_dir() and args.only in p.parent.name)
+    if not finished:
+        parser.error(f"{args.sweep}: no finished cell with checkpoints (not a sweep folder, or none has finished)")
     results = {}
     for name in tqdm(finished, desc="cells", unit="cell"):
         try:
-            results[name] = select_cell(args.sweep / name, args.episodes, args.test_episodes, args.rescore)
+            results[name] = select_cell(args.sweep / name, args.episodes, args.test_episodes, args.holdout)
         except (FileNotFoundError, ValueError) as err:
             parser.error(str(err))
-    (args.sweep / CACHE).write_text(json.dumps(results, indent=1) + "\n")
-    for which in ("picked", "last"):
-        _cells_csv(args.sweep, results, which)
-    print("| cell | picked step | train success at each step | test success: last / picked |")
+    (args.sweep / f"select_checkpoint_{args.episodes}.json").write_text(json.dumps(results, indent=1) + "\n")
+    if (args.sweep / "cells.csv").is_file() and not args.only:  # the sweep writes it when its last cell is done
+        _cells_csv(args.sweep, results, "picked", args.sweep / f"cells_picked_{args.episodes}.csv")
+        _cells_csv(args.sweep, results, "last", args.sweep / "cells_last.csv")
+    print(f"| cell | picked step | success on the first {args.episodes} train scenes at each step (on the other "
+          "train scenes) | test success: last / picked |")
     print("|---|---|---|---|")
     for name, r in results.items():
-        scores = ", ".join(f"{int(k) // 1000}K {v['success_rate']:.2f}" for k, v in r["train_scores"].items())
+        other = r.get("holdout_train_success", {})
+        scores = ", ".join(f"{int(k) // 1000}K {v['success_rate']:.2f}" + (f" ({other[k]:.2f})" if k in other else "")
+                           for k, v in r["train_scores"].items())
         print(f"| {name} | {r['picked_step']} | {scores} | {r['last']['success_rate']['mean']:.2f} / "
               f"{r['picked']['success_rate']['mean']:.2f} |")
-    methods = sorted({name.split("__")[0] for name in results})
-    for method in methods:
+    for method in sorted({name.split("__")[0] for name in results}):
         for which in ("last", "picked"):
             values = [r[which]["success_rate"]["mean"] for n, r in results.items() if n.split("__")[0] == method]
-            lo_hi = bootstrap_interval(values)
-            print(f"{method} {which}: test success {sum(values) / len(values):.2f} "
-                  f"[{lo_hi[1]:.2f}, {lo_hi[2]:.2f}] over {len(values)} seeds" if lo_hi else
-                  f"{method} {which}: {values}")
+            mean, lo, hi = bootstrap_interval(values)
+            print(f"{method} {which}: test success {mean:.2f} [{lo:.2f}, {hi:.2f}] over {len(values)} seeds")
     return results
 
 

@@ -54,3 +54,8 @@ def test_state_round_trip_and_summary():
 def test_test_scenes_are_refused():
     with pytest.raises(ValueError, match=r"actor_selection.split='test'.*train scenes only.*allowed: 'train'"):
         ActorSelection(_actor(0.0), every=10, episodes=20, split="test")
+
+
+def test_more_scenes_than_the_split_has_are_refused():
+    with pytest.raises(ValueError, match=r"actor_selection.episodes=51: allowed 1 to 50 \(the train scenes\)"):
+        ActorSelection(_actor(0.0), every=10, episodes=51)

@@ -3,7 +3,8 @@
 A reward-free learner can lose in its last few thousand frames what it had learned (issue 17's late collapses: a
 seed at 0.62 test success at 20K frames read 0.00 at 30K, and a continuation of the same 20K checkpoint did not
 collapse). :class:`ActorSelection` evaluates the actor every ``actor_selection.every_frames`` on the first
-``actor_selection.episodes`` scenes of the TRAIN split (never the test scenes: they are for the final evaluation
+``actor_selection.episodes`` scenes of the TRAIN split (default all 50: a pick on the first 20 disagreed with
+the other 30 train scenes in 2 of 4 cells, ``docs/results/claims/README.md``) (never the test scenes: they are for the final evaluation
 only), keeps a copy of the best one, and at the finish the run evaluates both the last and the picked actor on
 ``eval.split``; the picked one becomes ``actor.pt`` and ``final_eval.json``, the last one's summary is kept
 beside it (``final_eval.json["last_actor"]``), so every run measures what the pick changed.
@@ -19,6 +20,8 @@ import copy
 
 import torch
 
+from pe_rlhf.envs import scene_seeds
+
 SELECTED_MODULE = "selected_actor"
 
 
@@ -33,6 +36,9 @@ class ActorSelection:
         if split != "train":
             raise ValueError(f"actor_selection.split={split!r}: the actor is picked on train scenes only "
                              "(the test scenes are for the final evaluation); allowed: 'train'")
+        if not 1 <= int(episodes) <= len(scene_seeds(split)):
+            raise ValueError(f"actor_selection.episodes={episodes}: allowed 1 to {len(scene_seeds(split))} (the "
+                             f"{split} scenes)")
         self.every, self.episodes, self.split = int(every), int(episodes), split
         self.actor = copy.deepcopy(actor).requires_grad_(False)  # holds the picked weights
         self.scores: dict[int, tuple[float, float]] = {}  # step -> (success rate, route completion)

@@ -50,7 +50,7 @@ class ActorSelectionConfig:
     """Picking the run's actor on train scenes (:mod:`pe_rlhf.runtime.actor_selection`)."""
 
     every_frames: int = knob(0, rule_int(0))  # 0: the last actor is the run's actor
-    episodes: int = knob(20, rule_int(1))  # the first this many scenes of the split
+    episodes: int = knob(50, rule_int(1))  # the first this many scenes of the split (50: all train scenes)
     split: str = knob("train", rule_choice("train"))  # train scenes only: the test scenes are for the final evaluation
 
 
