@@ -32,8 +32,7 @@ from tqdm import tqdm
 
 from pe_rlhf.algorithms.proxy_q.trained_policy import load_actor, run_world
 from pe_rlhf.envs import scene_seeds
-from pe_rlhf.evaluation import TorchRLPolicyAdapter, evaluate
-from pe_rlhf.evaluation.evaluate import EpisodeResult, EvaluationSummary
+from pe_rlhf.evaluation import EpisodeResult, EvaluationSummary, TorchRLPolicyAdapter, evaluate
 from pe_rlhf.evaluation.statistics import bootstrap_interval
 from pe_rlhf.runtime.actor_selection import ActorSelection
 from pe_rlhf.runtime.checkpoint import list_checkpoints
@@ -61,9 +60,9 @@ class CellEpisodes:
             self.actors[step] = load_actor(self.cell, checkpoint=self.checkpoints[step])
         return self.actors[step]
 
-    def summary(self, step: int, split: str, first: int, last: int) -> dict:
-        """The summary of the checkpoint at ``step`` on scenes ``scene_seeds(split)[first:last]``."""
-        seeds = scene_seeds(split)[first:last]
+    def summary(self, step: int, split: str, first: int, stop: int | None) -> dict:
+        """The summary of the checkpoint at ``step`` on scenes ``scene_seeds(split)[first:stop]``."""
+        seeds = scene_seeds(split)[first:stop]
         done = self.episodes.setdefault(str(step), {})
         missing = [s for s in seeds if str(s) not in done]
         if missing:

@@ -3,11 +3,12 @@
 A reward-free learner can lose in its last few thousand frames what it had learned (issue 17's late collapses: a
 seed at 0.62 test success at 20K frames read 0.00 at 30K, and a continuation of the same 20K checkpoint did not
 collapse). :class:`ActorSelection` evaluates the actor every ``actor_selection.every_frames`` on the first
-``actor_selection.episodes`` scenes of the TRAIN split (default all 50: a pick on the first 20 disagreed with
-the other 30 train scenes in 2 of 4 cells, ``docs/results/claims/README.md``) (never the test scenes: they are for the final evaluation
-only), keeps a copy of the best one, and at the finish the run evaluates both the last and the picked actor on
-``eval.split``; the picked one becomes ``actor.pt`` and ``final_eval.json``, the last one's summary is kept
-beside it (``final_eval.json["last_actor"]``), so every run measures what the pick changed.
+``actor_selection.episodes`` scenes of the TRAIN split, never the test scenes (they are for the final
+evaluation only); default all 50, since a pick on the first 20 disagreed with the other 30 train scenes in 2 of
+4 cells (``docs/results/claims/README.md``). It keeps a copy of the best one, and at the finish the run
+evaluates both the last and the picked actor on ``eval.split``; the picked one becomes ``actor.pt`` and
+``final_eval.json``, the last one's summary is kept beside it (``final_eval.json["last_actor"]``), so every run
+measures what the pick changed.
 
 Best: the highest success rate; among equal ones the highest mean route completion; among equal ones the later
 snapshot. The copy and the scores are part of every checkpoint (module ``selected_actor``), so ``--resume``

@@ -182,11 +182,11 @@ class Run:
     def evaluate(self, actor=None, split: str | None = None, episodes: int | None = None) -> dict:
         """A deterministic evaluation of ``actor`` (the learner's) on ``eval.split`` and ``eval.episodes``
         unless given."""
+        actor = self.learner.actor if actor is None else actor
+        episodes = int(self.cfg.eval.episodes if episodes is None else episodes)
         t = time.time()
         with torch_threads(1):
-            summary = evaluate_actor(self.learner.actor if actor is None else actor, self.cfg,
-                                     self.learner.env_config, int(self.cfg.eval.episodes if episodes is None
-                                                                  else episodes), split)
+            summary = evaluate_actor(actor, self.cfg, self.learner.env_config, episodes, split)
         self.timed("eval", t)
         return summary
 
@@ -261,8 +261,7 @@ class Run:
         final.update(self.learner.summary(out_dir))
         if self.seconds:
             final["training"].update(wall_time_s=self.wall_time(), **{f"{k}_s": v for k, v in self.seconds.items()})
-        actor = actor.state_dict()
-        torch.save({k: v.detach().cpu() for k, v in actor.items()}, out_dir / ACTOR_FILE)
+        torch.save({k: v.detach().cpu() for k, v in actor.state_dict().items()}, out_dir / ACTOR_FILE)
         return final
 
 
