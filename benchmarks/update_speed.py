@@ -1,11 +1,13 @@
 """ms per update: one ``PERLHFLoss`` update vs one torchrl ``SACLoss`` update, same process.
 
 An update is: forward on a batch, backward of the summed ``loss_*`` terms, an Adam step on all
-the loss module's parameters, and a ``SoftUpdate(tau=0.005)`` step. Both losses use the same
+the loss module's parameters, and a Polyak step (tau=0.005) of the targets, both as the learners take them
+(``make_adam``: fused Adam; ``ForeachSoftUpdate``). Both losses use the same
 networks (``make_actor`` / ``make_qvalue``, 256x256 MLPs), obs dim 250 (the real env's), batch
 1024, 2 critics; the PE-RLHF batch has ~25% takeover rows. PE-RLHF is timed twice: as shipped
 (``perlhf``: ``fused_critics=True``) and through its critic modules (``perlhf_modules``:
-``fused_critics=False``, the path before issue 20; ``--no-reference`` skips it).
+``fused_critics=False``, the path before issue 20) and with torch's default Adam and TorchRL's
+``SoftUpdate`` (``perlhf_torch_steps``); ``--no-reference`` skips both.
 
 These machines are shared and noisy, so the losses are interleaved update by update (ABBA order
 in each round) on ``--threads`` threads, every update is timed on its own (wall and process CPU
@@ -35,7 +37,7 @@ from torch.utils.flop_counter import flop_registry
 from torchrl.objectives import SACLoss, SoftUpdate
 
 from pe_rlhf.modules import make_actor, make_qvalue
-from pe_rlhf.objectives import PERLHFLoss
+from pe_rlhf.objectives import ForeachSoftUpdate, PERLHFLoss, make_adam
 from pe_rlhf.objectives.perlhf import make_transitions
 
 ACTION_DIM = 2
@@ -55,12 +57,19 @@ def make_batch(batch: int, obs_dim: int, intervention_rate: float, seed: int = 0
 
 
 class Updater:
-    """Loss + Adam over all its parameters + SoftUpdate: one ``step()`` is one full update."""
+    """Loss + Adam over all its parameters + a Polyak target step: one ``step()`` is one full update.
 
-    def __init__(self, loss, lr: float = 3e-4, precision: str = "fp32"):
+    ``steps="library"``: the learners' own steps (``pe_rlhf.objectives.make_adam``, fused where it can be, and
+    ``ForeachSoftUpdate``); ``"torch"``: ``torch.optim.Adam``'s default and TorchRL's ``SoftUpdate``."""
+
+    def __init__(self, loss, lr: float = 3e-4, precision: str = "fp32", steps: str = "library"):
         self.loss = loss
-        self.optim = torch.optim.Adam(loss.parameters(), lr=lr)
-        self.target = SoftUpdate(loss, tau=0.005)
+        if steps == "library":
+            self.optim = make_adam(loss.parameters(), lr=lr)
+            self.target = ForeachSoftUpdate(loss, tau=0.005)
+        else:
+            self.optim = torch.optim.Adam(loss.parameters(), lr=lr)
+            self.target = SoftUpdate(loss, tau=0.005)
         self.precision = precision
 
     def step(self, batch: TensorDict) -> None:
@@ -76,7 +85,9 @@ class Updater:
 def build(obs_dim: int, hidden: tuple[int, ...], intervention_critics: int = 1,
           precision: str = "fp32", reference: bool = True) -> dict[str, Updater]:
     """``sac``, ``perlhf`` (the default, fused critics) and, with ``reference``, ``perlhf_modules``
-    (``fused_critics=False``: one module call per critic and action set, the path before issue 20)."""
+    (``fused_critics=False``: one module call per critic and action set, the path before issue 20) and
+    ``perlhf_torch_steps`` (the default loss with torch's Adam and TorchRL's ``SoftUpdate``). All but the last
+    take the learners' own optimiser and target steps."""
     torch.manual_seed(0)
     sac = SACLoss(make_actor(obs_dim, hidden=hidden), make_qvalue(obs_dim, hidden=hidden), num_qvalue_nets=2,
                   loss_function="l2", target_entropy=-float(ACTION_DIM))
@@ -87,6 +98,12 @@ def build(obs_dim: int, hidden: tuple[int, ...], intervention_critics: int = 1,
                             make_qvalue(obs_dim, hidden=hidden), num_qvalue_nets=2, action_dim=ACTION_DIM,
                             num_intervention_qvalue_nets=intervention_critics, fused_critics=fused)
         updaters[name] = Updater(perlhf, precision=precision)
+    if reference:
+        torch.manual_seed(0)
+        perlhf = PERLHFLoss(make_actor(obs_dim, hidden=hidden), make_qvalue(obs_dim, hidden=hidden),
+                            make_qvalue(obs_dim, hidden=hidden), num_qvalue_nets=2, action_dim=ACTION_DIM,
+                            num_intervention_qvalue_nets=intervention_critics)
+        updaters["perlhf_torch_steps"] = Updater(perlhf, precision=precision, steps="torch")
     return updaters
 
 
@@ -224,6 +241,8 @@ def main(argv: list[str] | None = None) -> dict:
             "cpu_ratio_median_of_rounds": statistics.median(cpu_ratios["perlhf_modules"]),
             "flop_ratio": flops["perlhf_modules"] / flops["sac"],
             "speedup_of_fused": ms["perlhf_modules"] / ms["perlhf"],
+            "perlhf_torch_steps_ms_median": ms["perlhf_torch_steps"],
+            "speedup_of_library_steps": ms["perlhf_torch_steps"] / ms["perlhf"],
         }
     for name in variants:
         print(f"median: SAC {ms['sac']:.1f} ms/update, {name} {ms[name]:.1f} ms/update, "

@@ -30,11 +30,11 @@ from torch import nn
 from torch.distributions import Normal, kl_divergence
 from torchrl.data import Bounded, LazyTensorStorage, SamplerWithoutReplacement, TensorDictReplayBuffer
 from torchrl.modules import MLP, ProbabilisticActor
-from torchrl.objectives import ClipPPOLoss, SACLoss, SoftUpdate, ValueEstimators
+from torchrl.objectives import ClipPPOLoss, SACLoss, ValueEstimators
 
 from pe_rlhf.algorithms.baselines.episodes import EpisodeTracker
 from pe_rlhf.modules import make_actor, make_qvalue
-from pe_rlhf.objectives import CPOLoss, LagrangeMultiplier, PPOLagLoss, SACLagLoss
+from pe_rlhf.objectives import CPOLoss, ForeachSoftUpdate, LagrangeMultiplier, PPOLagLoss, SACLagLoss, make_adam
 from pe_rlhf.objectives.cpo import base_normal
 from pe_rlhf.runtime.update import update
 
@@ -111,13 +111,13 @@ class SACLearner:
         else:
             self.loss = SACLoss(self.actor, qvalue, **kwargs)
         self.loss.make_value_estimator(gamma=float(lc.gamma))
-        self.soft_update = SoftUpdate(self.loss, tau=float(lc.tau))
+        self.soft_update = ForeachSoftUpdate(self.loss, tau=float(lc.tau))
         lr = float(o.lr)
-        self.optimizers = {"actor": torch.optim.Adam(_params(self.loss.actor_network_params), lr=lr),
-                           "qvalue": torch.optim.Adam(_params(self.loss.qvalue_network_params), lr=lr),
-                           "alpha": torch.optim.Adam([self.loss.log_alpha], lr=lr)}
+        self.optimizers = {"actor": make_adam(_params(self.loss.actor_network_params), lr=lr),
+                           "qvalue": make_adam(_params(self.loss.qvalue_network_params), lr=lr),
+                           "alpha": make_adam([self.loss.log_alpha], lr=lr)}
         if lagrangian:
-            self.optimizers["cost_qvalue"] = torch.optim.Adam(_params(self.loss.cost_qvalue_network_params), lr=lr)
+            self.optimizers["cost_qvalue"] = make_adam(_params(self.loss.cost_qvalue_network_params), lr=lr)
         # LazyTensorStorage allocates all its slots at the first write: no more than the run can fill.
         size = min(int(cfg.replay_buffer.size), int(cfg.collector.total_frames))
         self.replay = TensorDictReplayBuffer(storage=LazyTensorStorage(size),
@@ -252,8 +252,8 @@ class PPOLearner(_OnPolicyLearner):
         self.objective = KLPenalty(self.loss, float(lc.kl_coef), None if lc.kl_target is None else float(lc.kl_target))
         critics = [self.loss.critic_network_params] + ([self.loss.cost_critic_network_params] if lagrangian else [])
         lr = float(cfg.optim.lr)
-        self.optimizers = {"actor": torch.optim.Adam(_params(self.loss.actor_network_params), lr=lr),
-                           "critic": torch.optim.Adam(_params(*critics), lr=lr)}
+        self.optimizers = {"actor": make_adam(_params(self.loss.actor_network_params), lr=lr),
+                           "critic": make_adam(_params(*critics), lr=lr)}
         self.modules = {"loss": self.objective}  # kl_coef included
 
     def learn(self, batch: TensorDictBase, frames: int, tracker: EpisodeTracker) -> dict[str, float]:
@@ -286,7 +286,7 @@ class CPOLearner(_OnPolicyLearner):
                             max_backtracks=int(lc.max_backtracks))
         self._use_gae(self.loss)
         critics = _params(self.loss.critic_network_params, self.loss.cost_critic_network_params)
-        self.optimizers = {"critics": torch.optim.Adam(critics, lr=float(cfg.optim.lr))}
+        self.optimizers = {"critics": make_adam(critics, lr=float(cfg.optim.lr))}
         self.modules = {"loss": self.loss}
 
     def learn(self, batch: TensorDictBase, frames: int, tracker: EpisodeTracker) -> dict[str, float]:

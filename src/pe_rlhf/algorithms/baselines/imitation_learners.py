@@ -50,6 +50,7 @@ from pe_rlhf.algorithms.baselines.imitation import (
     make_discriminator,
 )
 from pe_rlhf.modules import make_actor
+from pe_rlhf.objectives import make_adam
 from pe_rlhf.runtime.update import update
 from pe_rlhf.transforms.keys import INTERVENTION, INTERVENTION_START
 
@@ -68,7 +69,7 @@ class GAILLearner(PPOLearner):
         self.discriminator_loss = DiscriminatorLoss(self.discriminator, float(d.grad_penalty))
         self.policy_optimizers = self.optimizers
         self.discriminator_optimizers = {
-            "discriminator": torch.optim.Adam(_params(self.discriminator_loss.discriminator_network_params),
+            "discriminator": make_adam(_params(self.discriminator_loss.discriminator_network_params),
                                               lr=float(d.lr))}
         self.optimizers = {**self.policy_optimizers, **self.discriminator_optimizers}
         self.modules = {**self.modules, "discriminator": self.discriminator_loss}
@@ -142,7 +143,7 @@ class InterventionLearner:
         self.cfg, self.run_dir, self.weighted = cfg, run_dir, weighted
         self.actor = make_actor(obs_dim, hidden=tuple(cfg.loss.hidden))
         self.loss = WeightedBCLoss(self.actor, str(cfg.loss.function))
-        self.optimizers = {"actor": torch.optim.Adam(_params(self.loss.actor_network_params), lr=float(cfg.optim.lr))}
+        self.optimizers = {"actor": make_adam(_params(self.loss.actor_network_params), lr=float(cfg.optim.lr))}
         self.counts = TakeoverCounts()
         self.modules = {"loss": self.loss, "counts": self.counts}
         size = int(cfg.data.steps) + int(cfg.collector.total_frames)

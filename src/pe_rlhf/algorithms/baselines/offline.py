@@ -25,13 +25,14 @@ import torch
 from tensordict import TensorDictBase
 from torch import nn
 from torchrl.data import Bounded, LazyTensorStorage, TensorDictReplayBuffer
-from torchrl.objectives import CQLLoss, SoftUpdate
+from torchrl.objectives import CQLLoss
 
 from pe_rlhf.algorithms.baselines.algorithms import _NoTargets, _params, summarise
 from pe_rlhf.algorithms.baselines.config import algorithm_name, method_of
 from pe_rlhf.algorithms.baselines.demos import DEMO_KEYS, data_totals, demonstrations
 from pe_rlhf.algorithms.baselines.imitation import WeightedBCLoss
 from pe_rlhf.modules import make_actor, make_qvalue
+from pe_rlhf.objectives import ForeachSoftUpdate, make_adam
 from pe_rlhf.runtime.config import driving_config
 from pe_rlhf.runtime.run import Learner, Run
 from pe_rlhf.runtime.update import update
@@ -45,7 +46,7 @@ class BCLearner:
         self.cfg = cfg
         self.actor = make_actor(obs_dim, hidden=tuple(cfg.loss.hidden))
         self.loss = WeightedBCLoss(self.actor, str(cfg.loss.function))
-        self.optimizers = {"actor": torch.optim.Adam(_params(self.loss.actor_network_params), lr=float(cfg.optim.lr))}
+        self.optimizers = {"actor": make_adam(_params(self.loss.actor_network_params), lr=float(cfg.optim.lr))}
         self.modules = {"loss": self.loss}
         self.targets = _NoTargets()
 
@@ -80,18 +81,19 @@ class CQLLearner:
         lc, lr = cfg.loss, float(cfg.optim.lr)
         self.cfg = cfg
         self.actor = make_actor(obs_dim, hidden=tuple(lc.hidden))
+        target_entropy = lc.target_entropy if lc.target_entropy == "auto" else float(lc.target_entropy)
         self.cql = CQLLoss(self.actor, make_qvalue(obs_dim, hidden=tuple(lc.hidden)), loss_function="l2",
                            alpha_init=float(lc.alpha_init),
                            action_spec=Bounded(-1.0, 1.0, (2,)),
-                           target_entropy=lc.target_entropy if lc.target_entropy == "auto" else float(lc.target_entropy),
+                           target_entropy=target_entropy,
                            temperature=float(lc.temperature), min_q_weight=float(lc.min_q_weight),
                            num_random=int(lc.num_random))
         self.cql.make_value_estimator(gamma=float(lc.gamma))
         self.loss = BCThenCQL(self.cql, int(lc.bc_steps))
-        self.soft_update = SoftUpdate(self.cql, tau=float(lc.tau))
-        self.optimizers = {"actor": torch.optim.Adam(_params(self.cql.actor_network_params), lr=lr),
-                           "qvalue": torch.optim.Adam(_params(self.cql.qvalue_network_params), lr=lr),
-                           "alpha": torch.optim.Adam([self.cql.log_alpha], lr=lr)}
+        self.soft_update = ForeachSoftUpdate(self.cql, tau=float(lc.tau))
+        self.optimizers = {"actor": make_adam(_params(self.cql.actor_network_params), lr=lr),
+                           "qvalue": make_adam(_params(self.cql.qvalue_network_params), lr=lr),
+                           "alpha": make_adam([self.cql.log_alpha], lr=lr)}
         self.modules = {"loss": self.loss}
 
     def update(self, sample: TensorDictBase) -> dict[str, float]:

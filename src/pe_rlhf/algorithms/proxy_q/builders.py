@@ -39,7 +39,7 @@ from torchrl.objectives import SoftUpdate
 from pe_rlhf.envs.torchrl_env import make_env
 from pe_rlhf.mentors import Mentor
 from pe_rlhf.modules import QEnsemble
-from pe_rlhf.objectives import PERLHFLoss
+from pe_rlhf.objectives import PERLHFLoss, make_adam
 from pe_rlhf.physics import IDMMobilPolicy, SafetyForecastConfig, SafetyForecastValue
 from pe_rlhf.runtime.world import build_mentor, obs_dim
 from pe_rlhf.threads import thread_budget
@@ -53,7 +53,8 @@ from pe_rlhf.transforms import (
     TrafficDisturbanceCost,
 )
 
-OBS_DIM = 250  # the default world's observation (240 lidar beams); obs_dim(cfg) follows env.lidar_beams and env.lane_features
+# The default world's observation (240 lidar beams); obs_dim(cfg) follows env.lidar_beams and env.lane_features.
+OBS_DIM = 250
 # A worker's Q-ensemble seen from its collector, in TorchRL's attribute-path notation (cascade_execute);
 # make_worker_env checks that the InterventionTransform is the env's last transform when there is a selector.
 # (HAIM-DRL's TrafficDisturbanceCost comes after it, and HAIM-DRL has no selector.)
@@ -291,14 +292,14 @@ def build_optimizers(cfg, loss: PERLHFLoss) -> dict[str, torch.optim.Optimizer]:
     """One Adam per loss term, each over the parameters that term trains."""
     lr = float(cfg.optim.lr)
     optimizers = {
-        "actor": torch.optim.Adam(loss.actor_network_params.flatten_keys().values(), lr=lr),
-        "qvalue": torch.optim.Adam(loss.qvalue_network_params.flatten_keys().values(), lr=lr),
-        "intervention_qvalue": torch.optim.Adam(
+        "actor": make_adam(loss.actor_network_params.flatten_keys().values(), lr=lr),
+        "qvalue": make_adam(loss.qvalue_network_params.flatten_keys().values(), lr=lr),
+        "intervention_qvalue": make_adam(
             loss.intervention_qvalue_network_params.flatten_keys().values(), lr=lr),
-        "alpha": torch.optim.Adam([loss.log_alpha], lr=lr),
+        "alpha": make_adam([loss.log_alpha], lr=lr),
     }
     if loss.has_disturbance_critic:
-        optimizers["disturbance_qvalue"] = torch.optim.Adam(
+        optimizers["disturbance_qvalue"] = make_adam(
             loss.disturbance_qvalue_network_params.flatten_keys().values(), lr=lr)
     return optimizers
 

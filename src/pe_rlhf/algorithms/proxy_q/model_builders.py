@@ -6,10 +6,8 @@
 
 from __future__ import annotations
 
-from torchrl.objectives import SoftUpdate
-
 from pe_rlhf.modules import make_actor, make_qvalue
-from pe_rlhf.objectives import PERLHFLoss
+from pe_rlhf.objectives import ForeachSoftUpdate, PERLHFLoss
 from pe_rlhf.runtime.world import obs_dim
 
 
@@ -17,7 +15,7 @@ def build_actor(cfg):
     return make_actor(obs_dim(cfg), hidden=tuple(cfg.loss.hidden))
 
 
-def build_loss(cfg, actor) -> tuple[PERLHFLoss, SoftUpdate]:
+def build_loss(cfg, actor) -> tuple[PERLHFLoss, ForeachSoftUpdate]:
     """``PERLHFLoss`` of ``cfg.loss``, with HAIM-DRL's disturbance critic when ``disturbance.enabled``."""
     hidden, n = tuple(cfg.loss.hidden), obs_dim(cfg)
     target_entropy = cfg.loss.target_entropy
@@ -37,7 +35,7 @@ def build_loss(cfg, actor) -> tuple[PERLHFLoss, SoftUpdate]:
         failure_target=str(cfg.loss.failure_target), gap_action=str(cfg.loss.gap_action),
         fused_critics=bool(cfg.loss.fused_critics),
     )
-    return loss, SoftUpdate(loss, tau=float(cfg.loss.tau))
+    return loss, ForeachSoftUpdate(loss, tau=float(cfg.loss.tau))
 
 
 __all__ = ["build_actor", "build_loss"]
