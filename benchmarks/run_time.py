@@ -8,7 +8,12 @@ the physics-forecast selector) for ``--frames`` env steps, no evaluation, in a f
 - ``shipped``: ``optim.threads=auto``: the updates take the cores other processes leave, re-checked every batch
   (:class:`pe_rlhf.threads.FreeCores`), GNU OpenMP's default waiting;
 - ``fixed``: the earlier behaviour: ``optim.threads=2`` whatever the load;
-- ``passive``: ``optim.threads=auto`` with ``OMP_WAIT_POLICY=PASSIVE`` (threads sleep at barriers), for reference.
+- ``passive``: ``optim.threads=auto`` with ``OMP_WAIT_POLICY=PASSIVE`` (threads sleep at barriers), for reference;
+  ``import pe_rlhf`` sets it unless ``OMP_WAIT_POLICY`` or ``GOMP_SPINCOUNT`` is set, so ``shipped`` waits so too;
+- ``spin``, ``spin_30k``, ``spin_3k``: ``optim.threads=auto`` with ``GOMP_SPINCOUNT`` 300000 (GNU OpenMP's own
+  default), 30000, 3000 (threads spin that many times at a barrier before they sleep);
+- ``one_thread``: ``optim.threads=1``; ``async``: one update thread beside acting (``optim.async_updates=true``,
+  not bit-reproducible).
 
 Loads: ``idle`` (nothing else running) and ``busy`` (one single-threaded Python busy loop). Rounds alternate
 the order. Throughput: env steps per second of the whole run (warm-up, fit, updates), from the run's own
@@ -35,6 +40,11 @@ SETTINGS = {
     "shipped": ({}, []),
     "fixed": ({}, ["optim.threads=2"]),
     "passive": ({"OMP_WAIT_POLICY": "PASSIVE"}, []),
+    "spin": ({"GOMP_SPINCOUNT": "300000"}, []),
+    "spin_30k": ({"GOMP_SPINCOUNT": "30000"}, []),
+    "spin_3k": ({"GOMP_SPINCOUNT": "3000"}, []),
+    "one_thread": ({}, ["optim.threads=1"]),
+    "async": ({}, ["optim.threads=1", "optim.async_updates=true"]),
 }
 
 
@@ -70,14 +80,16 @@ def run_once(setting: str, frames: int, warmup: int, timeout: float, seed: int =
     last = rows[-1]
     steps, seconds = float(last["env_steps"]), float(last["wall_time"])
     return {"setting": setting, "finished": finished, "wall_s": wall, "steps": steps, "train_seconds": seconds,
-            "env_seconds": float(last.get("time/env_seconds") or 0), "update_seconds": float(last.get("time/update_seconds") or 0),
+            "env_seconds": float(last.get("time/env_seconds") or 0),
+            "update_seconds": float(last.get("time/update_seconds") or 0),
             "update_threads": float(last.get("time/update_threads") or 0), "steps_per_s": steps / seconds}
 
 
-def measure(settings: list[str], frames: int, warmup: int, rounds: int, timeout: float) -> list[dict]:
+def measure(settings: list[str], frames: int, warmup: int, rounds: int, timeout: float,
+            loads: tuple[str, ...] = ("idle", "busy")) -> list[dict]:
     rows = []
     for r in range(rounds):
-        order = [(s, load) for s in settings for load in ("idle", "busy")]
+        order = [(s, load) for s in settings for load in loads]
         for setting, load in (order if r % 2 == 0 else order[::-1]):
             hog = _busy_loop() if load == "busy" else None
             try:
@@ -99,7 +111,8 @@ def summarise(rows: list[dict], settings: list[str]) -> dict:
         idle = [r["steps_per_s"] for r in rows if r["setting"] == s and r["load"] == "idle"]
         busy = [r["steps_per_s"] for r in rows if r["setting"] == s and r["load"] == "busy"]
         ratios = [b / i for b, i in zip(busy, idle) if i > 0]
-        out[s] = {"idle_steps_per_s": statistics.median(idle), "busy_steps_per_s": statistics.median(busy),
+        out[s] = {"idle_steps_per_s": statistics.median(idle) if idle else None,
+                  "busy_steps_per_s": statistics.median(busy) if busy else None,
                   "busy_over_idle": statistics.median(ratios) if ratios else None, "per_round": ratios}
     return out
 
@@ -111,13 +124,18 @@ def main(argv=None) -> dict:
     parser.add_argument("--rounds", type=int, default=2)
     parser.add_argument("--timeout", type=float, default=300.0, help="seconds a run may take (its rate so far counts)")
     parser.add_argument("--settings", nargs="+", choices=sorted(SETTINGS), default=["shipped", "fixed", "passive"])
+    parser.add_argument("--loads", nargs="+", choices=["idle", "busy"], default=["idle", "busy"])
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
-    rows = measure(args.settings, args.frames, args.warmup, args.rounds, args.timeout)
+    rows = measure(args.settings, args.frames, args.warmup, args.rounds, args.timeout, tuple(args.loads))
     summary = summarise(rows, args.settings)
+
+    def cell(v: float | None) -> str:
+        return "-" if v is None else f"{v:.2f}"
+
     print("| setting | idle steps/s | one core busy | busy / idle |\n|---|---|---|---|")
     for s, v in summary.items():
-        print(f"| {s} | {v['idle_steps_per_s']:.2f} | {v['busy_steps_per_s']:.2f} | {v['busy_over_idle']:.2f} |")
+        print(f"| {s} | {cell(v['idle_steps_per_s'])} | {cell(v['busy_steps_per_s'])} | {cell(v['busy_over_idle'])} |")
     result = {"command": " ".join(["python", "benchmarks/run_time.py", *(argv if argv is not None else sys.argv[1:])]),
               "cores": os.cpu_count(), "summary": summary, "runs": rows}
     if args.json:
