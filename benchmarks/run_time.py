@@ -8,8 +8,8 @@ the physics-forecast selector) for ``--frames`` env steps, no evaluation, in a f
 - ``shipped``: ``optim.threads=auto``: the updates take the cores other processes leave, re-checked every batch
   (:class:`pe_rlhf.threads.FreeCores`), GNU OpenMP's default waiting;
 - ``fixed``: the earlier behaviour: ``optim.threads=2`` whatever the load;
-- ``passive``: ``optim.threads=auto`` with ``OMP_WAIT_POLICY=PASSIVE`` (threads sleep at barriers), for reference;
-  ``import pe_rlhf`` sets it unless ``OMP_WAIT_POLICY`` or ``GOMP_SPINCOUNT`` is set, so ``shipped`` waits so too;
+- ``passive``: ``optim.threads=auto`` with ``OMP_WAIT_POLICY=PASSIVE`` (threads sleep at barriers); until
+  2026-12-04 ``import pe_rlhf`` set it, so ``shipped`` rows measured before then wait so too;
 - ``spin``, ``spin_30k``, ``spin_3k``: ``optim.threads=auto`` with ``GOMP_SPINCOUNT`` 300000 (GNU OpenMP's own
   default), 30000, 3000 (threads spin that many times at a barrier before they sleep);
 - ``one_thread``: ``optim.threads=1``; ``async``: one update thread beside acting (``optim.async_updates=true``,

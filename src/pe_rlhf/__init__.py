@@ -2,15 +2,8 @@
 
 from __future__ import annotations
 
-import os
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
-
-# OpenMP threads that sleep at barriers rather than spin: on a shared machine a spinning update thread
-# fights the other jobs for its core and every update waits for it (pe_rlhf.threads). Read once, when
-# torch's OpenMP runtime loads: effective when pe_rlhf is imported before torch.
-if "OMP_WAIT_POLICY" not in os.environ and "GOMP_SPINCOUNT" not in os.environ:
-    os.environ["OMP_WAIT_POLICY"] = "PASSIVE"
 
 DISTRIBUTION = "pe-rlhf"  # [project] name in pyproject.toml
 
