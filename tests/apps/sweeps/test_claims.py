@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 
 import numpy as np
 import pytest
@@ -73,3 +74,42 @@ def test_each_method_can_come_from_its_own_sweep(tmp_path):
     assert claims_summary([old, new])["professional"]["pe_rlhf"]["seeds"] == 2  # no filter: both
     with pytest.raises(FileNotFoundError, match="no such cells.csv"):
         claims_summary([tmp_path / "missing.csv"])
+
+
+def write_metrics(run_dir, totals):
+    """A run folder whose metrics.csv logs ``totals`` (cumulative violations) every 100 env steps."""
+    run_dir.mkdir(parents=True)
+    with open(run_dir / "metrics.csv", "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["step", "env_steps", "train/safety_violations_total"])
+        for i, total in enumerate(totals, start=1):
+            w.writerow([i * 100, i * 100, total])
+
+
+def test_violations_after_a_step_come_from_the_cumulative_count(tmp_path):
+    from pe_rlhf.apps.sweeps.claims import violations_after
+
+    write_metrics(tmp_path / "run", [0, 1, 1, 3, 7, 7])  # steps 100..600
+    assert violations_after(tmp_path / "run", 300) == 6  # 7 at the end less 1 at step 300
+    assert violations_after(tmp_path / "run", 350) == 6  # the last row at or before step 350 is step 300
+    assert violations_after(tmp_path / "run", 50) == 7  # no row that early: all of them
+    assert violations_after(tmp_path / "run", 600) == 0
+    assert math.isnan(violations_after(tmp_path / "missing", 300))
+
+
+def test_the_column_joins_the_summary_where_the_cells_carry_it(tmp_path):
+    from pe_rlhf.apps.sweeps.claims import add_violations_after
+
+    sweep = tmp_path / "sweep"
+    sweep.mkdir()
+    write_cells(sweep / "cells.csv", [row("pe-rlhf", "collapsing", 0, 0.5, 0.1, 9, 0.3),
+                                      row("pe-rlhf", "collapsing", 1, 0.7, 0.1, 9, 0.3),
+                                      row("idm-mobil", "-", 0, 0.42, 0.02)])
+    write_metrics(sweep / "pe-rlhf__collapsing__s0", [1, 2, 5])
+    write_metrics(sweep / "pe-rlhf__collapsing__s1", [0, 0, 2])
+    rows = add_violations_after(sweep, 200, tmp_path / "cells_after.csv")
+    assert [r["train_violations_after"] for r in rows[:2]] == [3, 2] and math.isnan(rows[2]["train_violations_after"])
+    summary = claims_summary(tmp_path / "cells_after.csv")["collapsing"]
+    assert summary["pe_rlhf"]["train_violations_after"][0] == pytest.approx(2.5)
+    assert summary["idm_mobil"]["train_violations_after"] is None
+    assert "train_violations_after" not in claims_summary(sweep / "cells.csv")["collapsing"]["pe_rlhf"]

@@ -8,6 +8,10 @@ An evaluation-only method (IDM-MOBIL: mentor ``-`` in the cells) joins every cla
 ``1 - test safety violation rate``. The interval is :func:`pe_rlhf.evaluation.statistics.bootstrap_interval`
 (a 95% bootstrap CI of the mean over seeds); with one seed, or when every seed agrees, ``lo == hi == mean``.
 A metric a method does not have (IDM-MOBIL is not trained) is ``null``. Only finished cells count.
+
+Where the cells carry a ``train_violations_after`` column (:func:`add_violations_after`: the training safety
+violations logged after a given env step, e.g. after a collapsing mentor's switch or after the warm-up), each
+entry gains ``"train_violations_after": [mean, lo, hi]``.
 """
 
 from __future__ import annotations
@@ -21,7 +25,47 @@ from pe_rlhf.evaluation.statistics import bootstrap_interval  # re-exported: old
 
 COLUMNS = {"success": ("success_rate", False), "test_safety": ("safety_violation", True),
            "train_violations": ("train_safety_violations", False), "takeover_usage": ("takeover_data_usage", False)}
+OPTIONAL_COLUMNS = {"train_violations_after": ("train_violations_after", False)}
 NO_MENTOR = "-"  # the mentor column of an evaluation-only cell
+VIOLATIONS = "train/safety_violations_total"  # cumulative, in each run's metrics.csv
+
+
+def violations_after(run_dir: str | Path, step: int) -> float:
+    """The training safety violations a run logged after env step ``step``: the cumulative count in the last row
+    of its ``metrics.csv`` less the count in the last row at or before ``step`` (0 when no row is that early).
+    NaN when the run logged no violation count."""
+    from pe_rlhf.runtime.metrics_logger import read_metrics_csv
+
+    path = Path(run_dir) / "metrics.csv"
+    if not path.is_file():
+        return math.nan
+    _, rows = read_metrics_csv(path)
+    rows = [r for r in rows if VIOLATIONS in r and "env_steps" in r]
+    if not rows:
+        return math.nan
+    before = [r[VIOLATIONS] for r in rows if r["env_steps"] <= step]
+    return rows[-1][VIOLATIONS] - (before[-1] if before else 0.0)
+
+
+def add_violations_after(sweep_dir: str | Path, step: int, out_csv: str | Path) -> list[dict]:
+    """A copy of ``sweep_dir/cells.csv`` at ``out_csv`` with a ``train_violations_after`` column: each cell's
+    :func:`violations_after` ``step``, read from ``sweep_dir/<cell>/metrics.csv`` (NaN for evaluation-only cells).
+    Returns the rows written."""
+    sweep_dir = Path(sweep_dir)
+    source = sweep_dir / "cells.csv"
+    if not source.is_file():
+        raise FileNotFoundError(f"{source}: no such cells.csv")
+    with open(source, newline="") as f:
+        reader = csv.DictReader(f)
+        fields = [c for c in reader.fieldnames or [] if c != "train_violations_after"] + ["train_violations_after"]
+        rows = list(reader)
+    for r in rows:
+        r["train_violations_after"] = violations_after(sweep_dir / r["cell"], step)
+    with open(out_csv, "w", newline="") as f:
+        writer = csv.DictWriter(f, fields)
+        writer.writeheader()
+        writer.writerows(rows)
+    return rows
 
 
 def read_cells(sources: str | Path | list[str | Path]) -> list[dict]:
@@ -58,7 +102,8 @@ def claims_summary(cells_csv: str | Path | list[str | Path]) -> dict:
     out: dict = {}
     for (mentor, method), members in sorted(groups.items()):
         entry = {}
-        for name, (column, complement) in COLUMNS.items():
+        columns = dict(COLUMNS, **{k: v for k, v in OPTIONAL_COLUMNS.items() if any(v[0] in r for r in members)})
+        for name, (column, complement) in columns.items():
             values = [float(r[column]) if r.get(column) not in (None, "", "nan") else math.nan for r in members]
             if complement:
                 values = [1.0 - v for v in values]
@@ -93,4 +138,5 @@ def write_claims(cells_csv: str | Path | list[str | Path], out_dir: str | Path) 
     return summary
 
 
-__all__ = ["bootstrap_interval", "claims_summary", "markdown_table", "read_cells", "write_claims"]
+__all__ = ["add_violations_after", "bootstrap_interval", "claims_summary", "markdown_table", "read_cells",
+           "violations_after", "write_claims"]
