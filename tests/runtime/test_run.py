@@ -250,6 +250,18 @@ def test_a_resumed_run_picks_as_the_uninterrupted_one(tmp_path):
         assert torch.equal(v, torch.load(cut / ACTOR_FILE, weights_only=True)[k]), k
 
 
+@pytest.mark.parametrize("picking_before", [False, True])
+def test_resume_refuses_to_switch_actor_selection_midway(tmp_path, picking_before):
+    cut = tmp_path / "cut"
+    first = _picking_run if picking_before else (lambda d, learner, total: _run(d, learner, total=total,
+                                                                               checkpoint_every=50))
+    first(cut, SwitchingLearner(total=150, switch_at=100), total=150).train(cut)
+    then = (lambda d, learner: _run(d, learner, total=300, checkpoint_every=50)) if picking_before else _picking_run
+    was, now = ("on", "off") if picking_before else ("off", "on")
+    with pytest.raises(ValueError, match=f"written with actor_selection {was}, this run has it {now}.*config.yaml"):
+        then(cut, SwitchingLearner(total=300, switch_at=100)).train(cut, resume=True)
+
+
 def test_actor_selection_refuses_test_scenes(tmp_path):
     cfg = _cfg()
     cfg.actor_selection = SimpleNamespace(every_frames=50, episodes=1, split="test")

@@ -220,7 +220,15 @@ class Run:
         checkpoint = find_checkpoint(self.checkpoint_dir)
         if checkpoint is None:
             raise FileNotFoundError(f"no complete checkpoint under {self.checkpoint_dir}")
-        state = load_checkpoint(checkpoint, **self.checkpoint_objects(checkpoint))
+        try:
+            state = load_checkpoint(checkpoint, **self.checkpoint_objects(checkpoint))
+        except ValueError as e:
+            if SELECTED_MODULE not in str(e):
+                raise
+            was, now = ("off", "on") if self.selection is not None else ("on", "off")
+            raise ValueError(f"cannot resume from {checkpoint}: it was written with actor_selection {was}, this run "
+                             f"has it {now}; a run picks its actor over the whole run, so resume with the run's own "
+                             "actor_selection.every_frames (its config.yaml value)") from None
         check_resumable(state.get("run"), self.run_info(), checkpoint)
         if self.selection is not None:
             self.selection.load_state_dict(state["actor_selection"])
