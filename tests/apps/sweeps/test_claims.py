@@ -113,3 +113,8 @@ def test_the_column_joins_the_summary_where_the_cells_carry_it(tmp_path):
     assert summary["pe_rlhf"]["train_violations_after"][0] == pytest.approx(2.5)
     assert summary["idm_mobil"]["train_violations_after"] is None
     assert "train_violations_after" not in claims_summary(sweep / "cells.csv")["collapsing"]["pe_rlhf"]
+    # a claim whose cells leave the column empty (a merged cells.csv) gets no such key
+    with open(tmp_path / "cells_after.csv", "a", newline="") as f:
+        csv.writer(f).writerow(["pe-rlhf__professional__s0", "pe-rlhf", "professional", "-", 0, "finished", 0.6, 0.1,
+                                3, 0.3, ""])
+    assert "train_violations_after" not in claims_summary(tmp_path / "cells_after.csv")["professional"]["pe_rlhf"]

@@ -10,8 +10,8 @@ An evaluation-only method (IDM-MOBIL: mentor ``-`` in the cells) joins every cla
 A metric a method does not have (IDM-MOBIL is not trained) is ``null``. Only finished cells count.
 
 Where the cells carry a ``train_violations_after`` column (:func:`add_violations_after`: the training safety
-violations logged after a given env step, e.g. after a collapsing mentor's switch or after the warm-up), each
-entry gains ``"train_violations_after": [mean, lo, hi]``.
+violations logged after a given env step, e.g. after a collapsing mentor's switch or after the warm-up), every
+method of that claim gains ``"train_violations_after": [mean, lo, hi]`` (``null`` for a method without it).
 """
 
 from __future__ import annotations
@@ -99,11 +99,15 @@ def claims_summary(cells_csv: str | Path | list[str | Path]) -> dict:
             del groups[(mentor, method)]
             for claim in claims:
                 groups.setdefault((claim, method), members)
+    optional: dict[str, dict] = {}  # per claim: the optional columns any of its cells fills
+    for (mentor, _), members in groups.items():
+        for name, spec in OPTIONAL_COLUMNS.items():
+            if any(r.get(spec[0]) not in (None, "", "nan") for r in members):
+                optional.setdefault(mentor, {})[name] = spec
     out: dict = {}
     for (mentor, method), members in sorted(groups.items()):
         entry = {}
-        columns = dict(COLUMNS, **{k: v for k, v in OPTIONAL_COLUMNS.items() if any(v[0] in r for r in members)})
-        for name, (column, complement) in columns.items():
+        for name, (column, complement) in dict(COLUMNS, **optional.get(mentor, {})).items():
             values = [float(r[column]) if r.get(column) not in (None, "", "nan") else math.nan for r in members]
             if complement:
                 values = [1.0 - v for v in values]
