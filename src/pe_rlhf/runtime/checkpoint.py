@@ -53,6 +53,7 @@ from pe_rlhf import durable
 from pe_rlhf.filelock import FileLock
 
 __all__ = [
+    "CheckpointMismatch",
     "CheckpointError",
     "FORMAT_VERSION",
     "capture_rng",
@@ -77,6 +78,15 @@ _CODE_OPCODES = frozenset({"GLOBAL", "STACK_GLOBAL", "REDUCE", "INST", "OBJ", "N
 
 class CheckpointError(ValueError):
     """A checkpoint file is truncated, corrupt, unsafe or in an unknown format (the message names it)."""
+
+
+class CheckpointMismatch(ValueError):
+    """The objects given to :func:`load_checkpoint` are not those the checkpoint holds: ``kind`` (modules,
+    optimizers, replay buffers), the names ``missing`` from the checkpoint and those ``extra`` in it."""
+
+    def __init__(self, message: str, kind: str, missing: list[str], extra: list[str]):
+        super().__init__(message)
+        self.kind, self.missing, self.extra = kind, missing, extra
 
 
 # --------------------------------------------------------------------------- RNG states
@@ -501,9 +511,10 @@ def _check_names(kind: str, requested: Mapping[str, Any], saved: Mapping[str, An
     missing = sorted(set(requested) - set(saved))
     extra = sorted(set(saved) - set(requested))
     if missing or (strict and extra):
-        raise ValueError(f"checkpoint {ckpt} {kind} mismatch: not in the checkpoint {missing}, "
-                         f"in the checkpoint but not given {extra}"
-                         + (" (strict=False loads a subset)" if extra and not missing else ""))
+        raise CheckpointMismatch(f"checkpoint {ckpt} {kind} mismatch: not in the checkpoint {missing}, "
+                                 f"in the checkpoint but not given {extra}"
+                                 + (" (strict=False loads a subset)" if extra and not missing else ""),
+                                 kind, missing, extra)
 
 
 def _check_module(name: str, module: torch.nn.Module, saved: Any) -> None:

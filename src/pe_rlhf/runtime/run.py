@@ -32,7 +32,7 @@ from tqdm import tqdm
 
 from pe_rlhf.evaluation import TorchRLPolicyAdapter, evaluate
 from pe_rlhf.runtime.actor_selection import SELECTED_MODULE, ActorSelection
-from pe_rlhf.runtime.checkpoint import find_checkpoint, load_checkpoint, save_checkpoint
+from pe_rlhf.runtime.checkpoint import CheckpointMismatch, find_checkpoint, load_checkpoint, save_checkpoint
 from pe_rlhf.threads import torch_threads
 
 ACTOR_FILE = "actor.pt"
@@ -222,8 +222,8 @@ class Run:
             raise FileNotFoundError(f"no complete checkpoint under {self.checkpoint_dir}")
         try:
             state = load_checkpoint(checkpoint, **self.checkpoint_objects(checkpoint))
-        except ValueError as e:
-            if SELECTED_MODULE not in str(e):
+        except CheckpointMismatch as e:
+            if SELECTED_MODULE not in e.missing + e.extra:
                 raise
             was, now = ("off", "on") if self.selection is not None else ("on", "off")
             raise ValueError(f"cannot resume from {checkpoint}: it was written with actor_selection {was}, this run "

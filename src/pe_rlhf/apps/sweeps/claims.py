@@ -28,6 +28,7 @@ COLUMNS = {"success": ("success_rate", False), "test_safety": ("safety_violation
 OPTIONAL_COLUMNS = {"train_violations_after": ("train_violations_after", False)}
 NO_MENTOR = "-"  # the mentor column of an evaluation-only cell
 VIOLATIONS = "train/safety_violations_total"  # cumulative, in each run's metrics.csv
+MISSING = (None, "", "nan")  # a cells.csv value that holds no number
 
 
 def violations_after(run_dir: str | Path, step: int) -> float:
@@ -102,13 +103,13 @@ def claims_summary(cells_csv: str | Path | list[str | Path]) -> dict:
     optional: dict[str, dict] = {}  # per claim: the optional columns any of its cells fills
     for (mentor, _), members in groups.items():
         for name, spec in OPTIONAL_COLUMNS.items():
-            if any(r.get(spec[0]) not in (None, "", "nan") for r in members):
+            if any(r.get(spec[0]) not in MISSING for r in members):
                 optional.setdefault(mentor, {})[name] = spec
     out: dict = {}
     for (mentor, method), members in sorted(groups.items()):
         entry = {}
         for name, (column, complement) in dict(COLUMNS, **optional.get(mentor, {})).items():
-            values = [float(r[column]) if r.get(column) not in (None, "", "nan") else math.nan for r in members]
+            values = [float(r[column]) if r.get(column) not in MISSING else math.nan for r in members]
             if complement:
                 values = [1.0 - v for v in values]
             entry[name] = bootstrap_interval(values)
