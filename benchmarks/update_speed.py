@@ -14,7 +14,11 @@ in each round) on ``--threads`` threads, every update is timed on its own (wall 
 time), and the comparison uses medians: the median update of each loss over all rounds, and the
 median over rounds of the per-round ratio to SAC.
 
-    python benchmarks/update_speed.py [--rounds 9] [--updates 4] [--precision fp32|bf16] [--json out.json]
+    python benchmarks/update_speed.py [--rounds 9] [--updates 4] [--precision fp32|bf16] [--device cpu|cuda]
+                                      [--json out.json]
+
+``--device cuda``: the losses, their optimisers and the batch on the GPU, each update timed up to a
+``torch.cuda.synchronize()`` (what ``optim.device=cuda`` runs); the matmul ceiling is then the GPU's.
 
 Also reported: each update's floating-point work (torch's FLOP formulas, ``torch.utils.flop_counter``: forward,
 backward; Adam and the Polyak step are not matrix work and are not counted), the FLOP rate it achieves, and
@@ -62,8 +66,10 @@ class Updater:
     ``steps="library"``: the learners' own steps (``pe_rlhf.objectives.make_adam``, fused where it can be, and
     ``ForeachSoftUpdate``); ``"torch"``: ``torch.optim.Adam``'s default and TorchRL's ``SoftUpdate``."""
 
-    def __init__(self, loss, lr: float = 3e-4, precision: str = "fp32", steps: str = "library"):
-        self.loss = loss
+    def __init__(self, loss, lr: float = 3e-4, precision: str = "fp32", steps: str = "library",
+                 device: str = "cpu"):
+        self.loss = loss.to(device)
+        self.device = torch.device(device)
         if steps == "library":
             self.optim = make_adam(loss.parameters(), lr=lr)
             self.target = ForeachSoftUpdate(loss, tau=0.005)
@@ -73,17 +79,19 @@ class Updater:
         self.precision = precision
 
     def step(self, batch: TensorDict) -> None:
-        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.precision == "bf16"):
+        with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.precision == "bf16"):
             out = self.loss(batch)
         total = sum(v for k, v in out.items() if k.startswith("loss_"))
         self.optim.zero_grad(set_to_none=True)
         total.backward()
         self.optim.step()
         self.target.step()
+        if self.device.type == "cuda":
+            torch.cuda.synchronize(self.device)  # the update is done when the GPU is
 
 
 def build(obs_dim: int, hidden: tuple[int, ...], intervention_critics: int = 1,
-          precision: str = "fp32", reference: bool = True) -> dict[str, Updater]:
+          precision: str = "fp32", reference: bool = True, device: str = "cpu") -> dict[str, Updater]:
     """``sac``, ``perlhf`` (the default, fused critics) and, with ``reference``, ``perlhf_modules``
     (``fused_critics=False``: one module call per critic and action set, the path before issue 20) and
     ``perlhf_torch_steps`` (the default loss with torch's Adam and TorchRL's ``SoftUpdate``). All but the last
@@ -91,19 +99,19 @@ def build(obs_dim: int, hidden: tuple[int, ...], intervention_critics: int = 1,
     torch.manual_seed(0)
     sac = SACLoss(make_actor(obs_dim, hidden=hidden), make_qvalue(obs_dim, hidden=hidden), num_qvalue_nets=2,
                   loss_function="l2", target_entropy=-float(ACTION_DIM))
-    updaters = {"sac": Updater(sac, precision=precision)}
+    updaters = {"sac": Updater(sac, precision=precision, device=device)}
     for name, fused in (("perlhf", True), ("perlhf_modules", False))[:2 if reference else 1]:
         torch.manual_seed(0)
         perlhf = PERLHFLoss(make_actor(obs_dim, hidden=hidden), make_qvalue(obs_dim, hidden=hidden),
                             make_qvalue(obs_dim, hidden=hidden), num_qvalue_nets=2, action_dim=ACTION_DIM,
                             num_intervention_qvalue_nets=intervention_critics, fused_critics=fused)
-        updaters[name] = Updater(perlhf, precision=precision)
+        updaters[name] = Updater(perlhf, precision=precision, device=device)
     if reference:
         torch.manual_seed(0)
         perlhf = PERLHFLoss(make_actor(obs_dim, hidden=hidden), make_qvalue(obs_dim, hidden=hidden),
                             make_qvalue(obs_dim, hidden=hidden), num_qvalue_nets=2, action_dim=ACTION_DIM,
                             num_intervention_qvalue_nets=intervention_critics)
-        updaters["perlhf_torch_steps"] = Updater(perlhf, precision=precision, steps="torch")
+        updaters["perlhf_torch_steps"] = Updater(perlhf, precision=precision, steps="torch", device=device)
     return updaters
 
 
@@ -131,17 +139,22 @@ def update_flops(updater: Updater, batch: TensorDict) -> int:
     return counter.total
 
 
-def matmul_ceiling(threads: int, dtype: torch.dtype, size: int = 1024, repeats: int = 10) -> float:
-    """GFLOP/s of a ``size x size`` linear layer (``F.linear``, the networks' own path) on ``threads`` threads:
-    best of 5 timings of ``repeats`` (the caller has set the thread count)."""
-    x, w, b = (torch.randn(size, size).to(dtype), torch.randn(size, size).to(dtype), torch.randn(size).to(dtype))
+def matmul_ceiling(threads: int, dtype: torch.dtype, size: int = 1024, repeats: int = 10,
+                   device: str = "cpu") -> float:
+    """GFLOP/s of a ``size x size`` linear layer (``F.linear``, the networks' own path) on ``threads`` threads
+    or on ``device``: best of 5 timings of ``repeats`` (the caller has set the thread count)."""
+    x, w, b = (torch.randn(size, size).to(device, dtype), torch.randn(size, size).to(device, dtype),
+               torch.randn(size).to(device, dtype))
+    sync = torch.cuda.synchronize if torch.device(device).type == "cuda" else (lambda: None)
     for _ in range(2):
         torch.nn.functional.linear(x, w, b)
     best = float("inf")
     for _ in range(5):
+        sync()
         t = time.perf_counter()
         for _ in range(repeats):
             torch.nn.functional.linear(x, w, b)
+        sync()
         best = min(best, (time.perf_counter() - t) / repeats)
     return 2 * size ** 3 / best / 1e9
 
@@ -171,20 +184,24 @@ def main(argv: list[str] | None = None) -> dict:
                         help="bf16: the losses' forward under bf16 autocast, as optim.precision=bf16")
     parser.add_argument("--no-reference", dest="reference", action="store_false",
                         help="skip PERLHFLoss(fused_critics=False) (timed by default, interleaved with the others)")
+    parser.add_argument("--device", default="cpu", help="cpu | cuda | cuda:N: where the losses and the batch live")
     parser.add_argument("--json", default=None, help="write the results here")
     args = parser.parse_args(argv)
+    if torch.device(args.device).type == "cuda" and not torch.cuda.is_available():
+        parser.error(f"--device {args.device}: torch sees no CUDA device here")
 
     warnings.filterwarnings("ignore", category=UserWarning)  # torchrl's target-updater notes
     torch.set_num_threads(args.threads)
-    batch = make_batch(args.batch, args.obs_dim, args.intervention_rate)
+    batch = make_batch(args.batch, args.obs_dim, args.intervention_rate).to(args.device)
     updaters = build(args.obs_dim, (args.hidden, args.hidden), args.intervention_critics, args.precision,
-                     args.reference)
+                     args.reference, args.device)
     variants = [name for name in updaters if name != "sac"]
     for _ in range(args.warmup):
         for updater in updaters.values():
             updater.step(batch.copy())
     flops = {name: update_flops(u, batch) for name, u in updaters.items()}
-    ceiling = {"fp32": matmul_ceiling(args.threads, torch.float32), "bf16": matmul_ceiling(args.threads, torch.bfloat16)}
+    ceiling = {"fp32": matmul_ceiling(args.threads, torch.float32, device=args.device),
+               "bf16": matmul_ceiling(args.threads, torch.bfloat16, device=args.device)}
 
     wall: dict[str, list[list[float]]] = {name: [] for name in updaters}
     cpu: dict[str, list[list[float]]] = {name: [] for name in updaters}
@@ -217,6 +234,7 @@ def main(argv: list[str] | None = None) -> dict:
     result = {
         "config": {k: v for k, v in vars(args).items() if k != "json"},
         "torch": torch.__version__,
+        "device": torch.cuda.get_device_name(args.device) if torch.device(args.device).type == "cuda" else "cpu",
         "actual_intervention_rate": float(batch["next", "intervention"].float().mean()),
         "sac_ms_median": ms["sac"],
         "perlhf_ms_median": ms["perlhf"],

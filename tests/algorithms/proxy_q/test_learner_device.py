@@ -73,3 +73,27 @@ def test_a_checkpoint_resumes_whatever_device_saved_it(tmp_path):
     assert all(v.device.type == "cpu" for v in saved.values() if isinstance(v, torch.Tensor))
     final = train(tmp_path / "run", "collector.total_frames=150", resume=True)
     assert final["training"]["frames"] == 150
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_a_run_with_the_learner_on_cuda_trains_and_saves_a_cpu_actor(tmp_path):
+    """On a GPU: the loss module and its updates on CUDA, acting and evaluation on the synced CPU copy. The run
+    trains (finite losses in every row), saves its actor as CPU tensors (loadable with no GPU), and resumes."""
+    built = []
+    real_build = builders.build_updater
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(builders, "build_updater", lambda *a, **k: built.append(real_build(*a, **k)) or built[-1])
+        train(tmp_path / "run", "collector.total_frames=100", "optim.device=cuda")
+    (updater,) = built
+    assert updater.device.type == "cuda"
+    assert all(p.device.type == "cuda" for p in updater.actor.parameters())
+    assert all(p.device.type == "cpu" for p in updater.acting_actor.parameters())
+    for a, b in zip(updater.actor.parameters(), updater.acting_actor.parameters()):
+        assert torch.equal(a.detach().cpu(), b)  # the acting copy holds the learner's last weights
+    rows = list(csv.DictReader(open(tmp_path / "run" / "metrics.csv")))
+    losses = [float(v) for r in rows for k, v in r.items() if k.startswith("loss/") and v not in ("", None)]
+    assert losses and all(torch.isfinite(torch.tensor(losses)))
+    actor = torch.load(tmp_path / "run" / "actor.pt", weights_only=True)
+    assert all(v.device.type == "cpu" for v in actor.values())
+    final = train(tmp_path / "run", "collector.total_frames=150", resume=True)
+    assert final["training"]["frames"] == 150
