@@ -29,8 +29,8 @@ from pe_rlhf.mentors.recording import (
     read_manifest,
     record,
 )
+from _scripts import SCRIPT_ENV
 
-SRC = Path(__file__).resolve().parents[2] / "src"
 SHORT = DrivingConfig(horizon=40)  # short episodes (time limit) keep the multi-episode tests fast
 
 
@@ -152,7 +152,7 @@ def test_sigkill_loses_at_most_the_current_episode_and_reopen_continues(tmp_path
         name, script = "driver", tmp_path / "rec.py"
         script.write_text(textwrap.dedent(KILL_SCRIPT.format(out=str(out))))
         cmd = [sys.executable, str(script)]
-    env = {**os.environ, "PYTHONPATH": str(SRC), "SDL_VIDEODRIVER": "dummy"}
+    env = {**os.environ, "PYTHONPATH": SCRIPT_ENV["PYTHONPATH"], "SDL_VIDEODRIVER": "dummy"}
     log = tmp_path / "stderr.txt"
     with open(log, "wb") as err:
         proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=err)

@@ -8,14 +8,17 @@ import os
 import subprocess
 import sys
 from pathlib import Path
+from _scripts import SCRIPT_ENV
 
 ROOT = Path(__file__).resolve().parents[2]
 RECIPE = ROOT / "recipes" / "pe_rlhf" / "train.py"
 TIMING = ("env_seconds", "update_seconds")  # wall-clock bookkeeping: differs between any two runs
 
 # 25-frame batches, warm-up 50, a checkpoint every 100 frames, no periodic evaluation, no video,
-# episodes of at most 50 steps, 2 updates per batch.
-TINY = ["profile=smoke", "env.horizon=50", "collector.frames_per_batch=25", "collector.warmup_steps=50",
+# episodes of at most 50 steps, 2 updates per batch; the learner on the CPU wherever the suite runs (on a GPU
+# machine `auto` puts it on CUDA, whose arithmetic changes the traces these tests pin: measured on an H200, the
+# mid-takeover resume fixture left its takeover and the synced-copy test compared a CUDA run with a CPU one).
+TINY = ["profile=smoke", "optim.device=cpu", "env.horizon=50", "collector.frames_per_batch=25", "collector.warmup_steps=50",
         "collector.learning_starts=25", "optim.updates_per_batch=2", "selector.warmup_fit_steps=10",
         "eval.every_frames=0", "eval.episodes=1", "eval.video=false", "checkpoint.every_frames=100",
         "checkpoint.keep=2"]
@@ -36,7 +39,7 @@ def train(out: Path, *overrides: str, resume: bool = False) -> dict:
 
 def start_training(out: Path, *overrides: str) -> subprocess.Popen:
     """The recipe in a child process (one torch thread, headless), output to ``out/stdout.txt``."""
-    env = {**os.environ, "PYTHONPATH": str(ROOT / "src"), "SDL_VIDEODRIVER": "dummy", "OMP_NUM_THREADS": "1"}
+    env = {**os.environ, "PYTHONPATH": SCRIPT_ENV["PYTHONPATH"], "SDL_VIDEODRIVER": "dummy", "OMP_NUM_THREADS": "1"}
     out.mkdir(parents=True, exist_ok=True)
     log = open(out.parent / f"{out.name}.log", "w")  # noqa: SIM115 - the child holds it
     return subprocess.Popen([sys.executable, str(RECIPE), *TINY, *overrides, "--out", str(out)], cwd=ROOT, env=env,

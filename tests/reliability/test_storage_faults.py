@@ -18,6 +18,7 @@ from pathlib import Path
 import pytest
 import torch
 from _runs import ROOT, train
+from _scripts import SCRIPT_ENV
 from tensordict import TensorDict
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 
@@ -47,7 +48,7 @@ def fresh_buffer() -> TensorDictReplayBuffer:
 
 
 def test_sigkill_during_checkpoint_writes_leaves_a_valid_checkpoint(tmp_path):
-    env = {**os.environ, "PYTHONPATH": str(ROOT / "src"), "OMP_NUM_THREADS": "1"}
+    env = {**os.environ, "PYTHONPATH": SCRIPT_ENV["PYTHONPATH"], "OMP_NUM_THREADS": "1"}
     proc = subprocess.Popen([sys.executable, "-c", WRITER, str(tmp_path)], env=env, stdout=subprocess.DEVNULL,
                             stderr=subprocess.PIPE)
     try:

@@ -30,6 +30,7 @@ from pe_rlhf.runtime.checkpoint import load_checkpoint
 from pe_rlhf.runtime.config_rules import ConfigError
 from pe_rlhf.runtime.metrics_logger import read_metrics_csv
 from pe_rlhf.runtime.world import obs_dim
+from _scripts import SCRIPT_ENV
 
 pytestmark = [pytest.mark.usefixtures("one_thread_module"),
               pytest.mark.filterwarnings("ignore::FutureWarning"), pytest.mark.filterwarnings("ignore::UserWarning")]
@@ -187,7 +188,7 @@ def test_sac_lag_lambda_rises_by_projected_dual_ascent_on_the_cost_window(smoke_
 def test_command_line_applies_overrides(tmp_path):
     """``recipes/ppo_rs/train.py profile=smoke optim.lr=...`` as a user runs it (PPO-RS's smoke test)."""
     out = tmp_path / "ppo_rs"
-    env = {**os.environ, "PYTHONPATH": str(ROOT / "src"), "SDL_VIDEODRIVER": "dummy", "OMP_NUM_THREADS": "1"}
+    env = {**os.environ, "PYTHONPATH": SCRIPT_ENV["PYTHONPATH"], "SDL_VIDEODRIVER": "dummy", "OMP_NUM_THREADS": "1"}
     proc = subprocess.run([sys.executable, str(ROOT / "recipes" / "ppo_rs" / "train.py"), "profile=smoke",
                            "optim.lr=0.000321", "loss.clip_epsilon=0.3", "--out", str(out)],
                           env=env, capture_output=True, text=True, timeout=120, check=False)

@@ -19,10 +19,11 @@ import pytest
 import pe_rlhf
 from pe_rlhf.apps.cli import SUBCOMMANDS, build_parser
 from pe_rlhf.apps.cli import main as cli_main
+from _scripts import SCRIPT_ENV
 
 ROOT = Path(__file__).resolve().parents[3]
 RECIPES = sorted(p.parent.name for p in (ROOT / "recipes").glob("*/train.py"))
-ENV = {**os.environ, "PYTHONPATH": str(ROOT / "src"), "SDL_VIDEODRIVER": "dummy", "OMP_NUM_THREADS": "1"}
+ENV = {**os.environ, "PYTHONPATH": SCRIPT_ENV["PYTHONPATH"], "SDL_VIDEODRIVER": "dummy", "OMP_NUM_THREADS": "1"}
 ENV.pop("PE_RLHF_DEBUG", None)
 
 
