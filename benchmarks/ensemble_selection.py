@@ -199,12 +199,14 @@ def main(argv=None) -> list[dict]:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--mentors", nargs="+", default=["professional", "adversarial"])
     parser.add_argument("--split", choices=["train", "test"], default="train")
-    parser.add_argument("--scenes", default="0-19", help="a range of the split's scene seeds (train 0-..., test 1000-...)")
+    parser.add_argument("--scenes", default="0-19",
+                        help="a range of the split's scene seeds (train 0-..., test 1000-...)")
     parser.add_argument("--value", default="expert", help="selector.value: expert | expert:PATH | forecast")
     parser.add_argument("--epsilons", type=float, nargs="+", default=[0.5, 1.5])
     parser.add_argument("--switch-margins", type=margin_arg, nargs="+", default=[None], help="none, a number, or inf")
     parser.add_argument("--variance-threshold", type=float, default=None)
-    parser.add_argument("--forecast-hold", type=float, default=1.0, help="selector.forecast_hold [s] with --value forecast")
+    parser.add_argument("--forecast-hold", type=float, default=1.0,
+                        help="selector.forecast_hold [s] with --value forecast")
     parser.add_argument("--veto-patience", type=int, default=1, help="selector.veto_patience: consecutive vetoes "
                         "before physics replaces the mentor")
     parser.add_argument("--imminent-failure", type=float, default=None, help="selector.imminent_failure [s]: "
@@ -237,7 +239,8 @@ def main(argv=None) -> list[dict]:
           f"{time.time() - t:.0f} s", flush=True)
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps({"args": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()},
+        args.json.write_text(json.dumps({"args": {k: str(v) if isinstance(v, Path) else v
+                                                  for k, v in vars(args).items()},
                                          "results": results}, indent=2, default=str) + "\n")
     return results
 

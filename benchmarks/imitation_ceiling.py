@@ -101,7 +101,8 @@ def main(argv=None) -> dict:
     rows = []
     for it in range(args.iterations + 1):
         loss = fit(driver, opt, feats, labels, args.fit_steps)
-        summary = evaluate(driver, scene_seeds("test")[: args.episodes], DrivingConfig(split="test", **world), progress=False)
+        summary = evaluate(driver, scene_seeds("test")[: args.episodes], DrivingConfig(split="test", **world),
+                           progress=False)
         causes = collections.Counter(e.failure_cause for e in summary.episodes if not e.success)
         rows.append({"iteration": it, "method": "BC" if it == 0 else f"DAgger {it}", "labels": len(labels),
                      "fit_loss": loss, "success": summary.success_rate, "failures": dict(causes),

@@ -75,7 +75,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
         for fatigue in args.fatigue:
             rows.append(measure(args.preset, rate, fatigue, scenes))
             r = rows[-1]
-            print(f"{r['preset']} error_rate {r['error_rate']} fatigue x{r['fatigue']:.1f}: success {r['success']:.2f}, "
+            print(f"{r['preset']} error_rate {r['error_rate']} fatigue x{r['fatigue']:.1f}: "
+                  f"success {r['success']:.2f}, "
                   f"violation episodes {r['violation_episodes']:.2f}, {r['velocity_kmh']:.1f} km/h, steps in a wrong "
                   f"manoeuvre {r['error_step_share']:.3f}, hard braking {r['hard_brake_share']:.3f}", flush=True)
     if args.json:

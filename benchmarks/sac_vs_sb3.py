@@ -9,7 +9,8 @@ random (SB3's habit; ours through ``collector.init_random_frames``). The timed w
 steps after learning starts, each with its update:
 
 - ours: :class:`pe_rlhf.runtime.run.Run` over :class:`pe_rlhf.algorithms.baselines.loop.BaselineLearner` as the recipe
-  runs it (Collector, ``frames_per_batch`` steps then as many updates, tracker, ``metrics.csv`` rows, progress bar), from the end of the iteration
+  runs it (Collector, ``frames_per_batch`` steps then as many updates, tracker, ``metrics.csv`` rows, progress
+  bar), from the end of the iteration
   at frame L to the end of the one at L + steps; no evaluation or checkpoint (the recipe's are periodic
   and would be the same for any learner). Acting runs on 1 thread, updates on ``--threads`` (the recipe's
   own choice, :mod:`pe_rlhf.threads`).
@@ -24,7 +25,8 @@ Each time is split into ``sim`` (``DrivingEnv.step``/``reset`` themselves, the s
 ``update`` (our ``learner.learn``: buffer extend, sampling and updates; SB3's ``train``) and ``other``
 (the rest of the loop: our tracker and logging, SB3's bookkeeping). The three run back to back in each
 round, the order alternating (these machines are shared and noisy); the comparison is the median over
-rounds of each one's steps/s, and the median of the per-round ratios ours / SB3 (and ours_bf16 / SB3). Each ``--threads`` count
+rounds of each one's steps/s, and the median of the per-round ratios ours / SB3 (and ours_bf16 / SB3). Each
+``--threads`` count
 gets its own rounds. ``--update-variants R`` then times one update alone (R interleaved rounds): ours,
 ours with TorchRL's ``vmap`` over the critics, ours in bf16, SB3 in fp32 and bf16, at ``--batch`` and at batch 16 (the
 fixed cost of an update); ``--cprofile N`` prints the top N functions of one more run of each.
@@ -265,7 +267,8 @@ def summarise(rounds: list[dict]) -> dict:
 
 def markdown(summary: dict, threads: int) -> str:
     names = {"ours": "ours (recipes/sac_rs)", "ours_bf16": "ours, optim.precision=bf16", "sb3": "SB3 SAC (fp32)"}
-    header = f"| {threads} torch thread(s) | env-steps/s (median) | min-max | sim ms | collect ms | update ms | other ms |"
+    header = (f"| {threads} torch thread(s) | env-steps/s (median) | min-max | sim ms | collect ms | update ms "
+              "| other ms |")
     lines = [header, "|---|---|---|---|---|---|---|"]
     for m in METHODS:
         s, ms = summary[m], summary[m]["split_ms_per_step_median"]

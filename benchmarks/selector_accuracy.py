@@ -17,8 +17,9 @@ its own driver for the rest of ``--hold`` steps (a takeover lasts at least 10), 
 obstacles (0.98 success on the test scenes) for the rest of ``--horizon`` steps (``--continuation own``). With
 ``--continuation executed`` each candidate's action is followed by what the hybrid would execute instead: the
 mentor's action at every step unless the selector (the same values and threshold) prefers physics', so a
-candidate is judged by the step it decides, not by a manoeuvre that the selector would cut short. A candidate *fails* when
-its copy crashes or leaves the road within the horizon. On the *decisive* states (exactly one candidate fails) the selector is right when it
+candidate is judged by the step it decides, not by a manoeuvre that the selector would cut short. A candidate
+*fails* when its copy crashes or leaves the road within the horizon. On the *decisive* states (exactly one
+candidate fails) the selector is right when it
 picks the other one; reported per ``--epsilons`` value, with "always the mentor" and "always physics" as
 references, plus the advantage ``mean_k Q_k(s, a_mentor) - Q_k(s, a_phy)`` on the decisive states split by
 which candidate was the safe one (a useful ensemble puts them apart).
@@ -188,8 +189,10 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("runs", nargs="*", type=Path)
     parser.add_argument("--mentors", nargs="+", default=None, help="no run folder: these mentors with --value")
-    parser.add_argument("--value", default="expert", help="selector.value with --mentors (expert | expert:PATH | forecast)")
-    parser.add_argument("--scenes", type=parse_scenes, default=parse_scenes("0-19"), help="train scene seeds, e.g. 0-19")
+    parser.add_argument("--value", default="expert",
+                        help="selector.value with --mentors (expert | expert:PATH | forecast)")
+    parser.add_argument("--scenes", type=parse_scenes, default=parse_scenes("0-19"),
+                        help="train scene seeds, e.g. 0-19")
     parser.add_argument("--hold", type=int, default=10, help="steps each candidate drives before the oracle does")
     parser.add_argument("--continuation", choices=("own", "executed"), default="own",
                         help="after each candidate's action: its own driver (own) or the hybrid's choice between "
@@ -219,7 +222,8 @@ def main(argv=None):
         r["seconds"] = time.time() - t
         results.append(r)
         sel = ", ".join(f"eps {k}: {v:.2f}" for k, v in r["selector_right"].items())
-        print(f"{run}: {r['takeover_states']} takeover states, {r['decisive_states']} decisive in {r['decisive_events']} events "
+        print(f"{run}: {r['takeover_states']} takeover states, {r['decisive_states']} decisive in "
+              f"{r['decisive_events']} events "
               f"(mentor fails {r['mentor_fails']}, physics fails {r['physics_fails']}, both {r['both_fail']}); "
               f"mentor chosen at {r['mentor_chosen_rate']:.2f} of them (median advantage {r['advantage_median_all']}, "
               f"median a_mentor - a_phy {r['mentor_minus_physics_median']}); "
@@ -228,7 +232,8 @@ def main(argv=None):
               f"{r['advantage_median_when_physics_safe']}", flush=True)
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps({"args": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()
+        args.json.write_text(json.dumps({"args": {k: (str(v) if isinstance(v, Path) else v)
+                                                  for k, v in vars(args).items()
                                                   if k != "runs"}, "results": results}, indent=2) + "\n")
     return results
 

@@ -177,7 +177,8 @@ def main() -> None:
                            name=f"seed {seed}").to_dict()
         per_seed[seed] = {"test": {k: summary[k] for k in ("success_rate", "episodic_return", "safety_violation",
                                                            "travel_distance", "travel_velocity", "overtake_count")},
-                          "failures": summary["failure_breakdown"], "training": training_numbers(run, int(cfg.collector.warmup_steps))}
+                          "failures": summary["failure_breakdown"],
+                          "training": training_numbers(run, int(cfg.collector.warmup_steps))}
     reference = evaluate(make_policy(args.compare, 0), seeds, env_config, progress=True, name=args.compare).to_dict()
     success = [p["test"]["success_rate"]["mean"] for p in per_seed.values()]
     result = {

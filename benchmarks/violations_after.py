@@ -32,7 +32,8 @@ def main(argv=None) -> list[dict]:
         parser.error(f"{err} (run the sweep first)")
     for r in rows:
         value = r["train_violations_after"]
-        print(f"{r['cell']}: {'—' if math.isnan(value) else f'{value:.0f}'} training violations after step {args.after}")
+        print(f"{r['cell']}: {'—' if math.isnan(value) else f'{value:.0f}'} "
+              f"training violations after step {args.after}")
     return rows
 
 

@@ -73,7 +73,8 @@ def cross_package_private_imports() -> list[str]:
                 continue
             for alias in node.names:
                 if _private(alias.name) or any(_private(p) for p in parts[1:]):
-                    found.append(f"{path.relative_to(SRC.parent)}:{node.lineno} imports {alias.name} from {node.module}")
+                    found.append(f"{path.relative_to(SRC.parent)}:{node.lineno} imports {alias.name} "
+                                 f"from {node.module}")
     return found
 
 

@@ -176,7 +176,8 @@ def test_wrapper_decides_as_the_transform_on_pendulum(mode):
     if mode in ("pe_rlhf-physics", "pe_rlhf-warmup-physics"):
         assert not _flags(expected, "mentor_selected").any()
     if mode == "pe_rlhf-warmup-physics":  # physics proposed and executed at every warm-up step
-        assert taken[:30].all() and all(np.abs(r["physics_action"]).sum() > 0 for r in expected[:30] if r["intervention"][0])
+        assert taken[:30].all() and all(np.abs(r["physics_action"]).sum() > 0
+                                        for r in expected[:30] if r["intervention"][0])
 
 
 def test_the_info_reader_gives_a_torchrl_env_the_transform_keys():

@@ -47,7 +47,8 @@ class InterventionWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
     """A mentor (and, in PE-RLHF, physics + selector) takes over the agent's action in a gymnasium env.
 
     The same arguments and decisions as :class:`~pe_rlhf.transforms.InterventionTransform` (``mentor``,
-    ``physics``, ``selector``, ``warmup_steps``, ``warmup_driver``, ``warmup_selection``); the mentor and physics get the
+    ``physics``, ``selector``, ``warmup_steps``, ``warmup_driver``, ``warmup_selection``); the mentor
+    and physics get the
     wrapped env's ``unwrapped`` (e.g. ``DrivingEnv``, ``PendulumEnv``). Actions are 1-D; the selector and
     a warm-up driver see the last observation returned. ``info`` keys: the module docstring.
 

@@ -135,7 +135,8 @@ def test_recipe_configs_take_precision_and_name_a_bad_value(loader):
     from pe_rlhf.runtime.config_rules import ConfigError
     from pe_rlhf.algorithms.proxy_q.config import load_config
 
-    load = (lambda o: load_config(None, o)) if loader == "pe_rlhf" else (lambda o: load_baseline_config(loader, overrides=o))
+    load = ((lambda o: load_config(None, o)) if loader == "pe_rlhf"
+            else (lambda o: load_baseline_config(loader, overrides=o)))
     assert load([]).optim.precision == "fp32"
     assert load(["optim.precision=bf16"]).optim.precision == "bf16"
     with pytest.raises(ConfigError, match=r"optim\.precision"):

@@ -158,7 +158,8 @@ def test_sac_lag_outputs_keys_and_gradient_routing():
     assert (td.select(*before.keys(True, True)) == before).all()  # the batch's own entries are untouched
 
     out["loss_cost_qvalue"].backward()
-    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in loss.cost_qvalue_network_params.values(True, True))
+    assert all(p.grad is not None and p.grad.abs().sum() > 0
+               for p in loss.cost_qvalue_network_params.values(True, True))
     assert all(p.grad is None for p in loss.qvalue_network_params.values(True, True))
     assert all(p.grad is None for p in loss.actor_network_params.values(True, True))
     loss.zero_grad()

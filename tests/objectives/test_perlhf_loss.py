@@ -346,7 +346,8 @@ def test_td_target_subtracts_the_entropy_of_the_next_action():
         return (0.5 * sum(((c - y) ** 2).mean() for c in (1.0, 2.0))).item()
 
     matches = [(td(draws[i]), -draws[1 - i].mean().item()) for i in range(2)]
-    assert any(out["td_loss"].item() == pytest.approx(t, rel=1e-5) and out["entropy"].item() == pytest.approx(h, rel=1e-5)
+    assert any(out["td_loss"].item() == pytest.approx(t, rel=1e-5)
+               and out["entropy"].item() == pytest.approx(h, rel=1e-5)
                for t, h in matches), (out["td_loss"], out["entropy"], matches)
 
 

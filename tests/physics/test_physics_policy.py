@@ -29,7 +29,8 @@ from pe_rlhf.physics.idm import idm_acceleration, idm_equilibrium_gap
 from pe_rlhf.physics.module import PhysicsPolicyModule
 from pe_rlhf.envs.perception import ego_lane_slot, neighbours
 
-from _scenes import (CAR_LENGTH, DT, EMPTY_STRAIGHT, LONG_ROAD_SEED, add_car, add_obstacle, bumper_gap,  # noqa: E402,F401
+from _scenes import (CAR_LENGTH, DT, EMPTY_STRAIGHT, LONG_ROAD_SEED, add_car, add_obstacle,  # noqa: E402,F401
+                     bumper_gap,
                      drive, lane_pose, long_road_env, long_road_scene, place_ego, progress_of, straight_env)
 
 

@@ -18,7 +18,8 @@ TIMING = ("env_seconds", "update_seconds")  # wall-clock bookkeeping: differs be
 # episodes of at most 50 steps, 2 updates per batch; the learner on the CPU wherever the suite runs (on a GPU
 # machine `auto` puts it on CUDA, whose arithmetic changes the traces these tests pin: measured on an H200, the
 # mid-takeover resume fixture left its takeover and the synced-copy test compared a CUDA run with a CPU one).
-TINY = ["profile=smoke", "optim.device=cpu", "env.horizon=50", "collector.frames_per_batch=25", "collector.warmup_steps=50",
+TINY = ["profile=smoke", "optim.device=cpu", "env.horizon=50", "collector.frames_per_batch=25",
+        "collector.warmup_steps=50",
         "collector.learning_starts=25", "optim.updates_per_batch=2", "selector.warmup_fit_steps=10",
         "eval.every_frames=0", "eval.episodes=1", "eval.video=false", "checkpoint.every_frames=100",
         "checkpoint.keep=2"]

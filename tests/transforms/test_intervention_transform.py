@@ -355,7 +355,8 @@ def test_selector_and_physics_come_together():
     selector = HybridActionSelector(QEnsemble(250, 2, num_members=2, hidden=(8,)))
     with pytest.raises(ValueError, match="both selector and physics"):
         InterventionTransform(DriverMentor(), selector=selector)
-    # physics without a selector proposes to a HybridSelectionTransform (tests/transforms/test_hybrid_selection_transform.py)
+    # physics without a selector proposes to a HybridSelectionTransform
+    # (tests/transforms/test_hybrid_selection_transform.py)
     assert InterventionTransform(DriverMentor(), physics=IDMMobilPolicy()).core.propose_physics
     with pytest.raises(ValueError, match="warmup_steps"):
         InterventionTransform(DriverMentor(), warmup_steps=-1)

@@ -191,7 +191,8 @@ class PERLHFLoss(LossModule):
             raise ValueError(f"PERLHFLoss gap_action={gap_action!r} is invalid; allowed: {list(GAP_ACTIONS)}")
         self.gap_action = gap_action
         if failure_target not in FAILURE_TARGETS:
-            raise ValueError(f"PERLHFLoss failure_target={failure_target!r} is invalid; allowed: {list(FAILURE_TARGETS)}")
+            raise ValueError(f"PERLHFLoss failure_target={failure_target!r} is invalid; "
+                             f"allowed: {list(FAILURE_TARGETS)}")
         self.failure_target = failure_target
         if intervention_critic_action not in INTERVENTION_CRITIC_ACTIONS:
             raise ValueError(f"intervention_critic_action={intervention_critic_action!r}; "

@@ -7,5 +7,6 @@ from pe_rlhf.transforms.intervention import InterventionTransform, takeover_cost
 from pe_rlhf.transforms.pacing import RealtimePacing
 from pe_rlhf.transforms.selector import HybridActionSelector
 
-__all__ = ["HybridActionSelector", "HybridSelectionTransform", "InterventionTransform", "RealtimePacing", "TrafficDisturbanceCost",
+__all__ = ["HybridActionSelector", "HybridSelectionTransform", "InterventionTransform", "RealtimePacing",
+           "TrafficDisturbanceCost",
            "takeover_cost"]

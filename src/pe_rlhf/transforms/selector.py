@@ -128,7 +128,8 @@ class HybridActionSelector(TensorDictModuleBase):
             [mentor_action, physics_action])
         if getattr(self.q_ensemble, "needs_env", False):
             if env is None:
-                raise ValueError(f"{type(self.q_ensemble).__name__} forecasts from the simulator: pass select(..., env=)")
+                raise ValueError(f"{type(self.q_ensemble).__name__} forecasts from the simulator: "
+                                 "pass select(..., env=)")
             q = self.q_ensemble.values(obs, acts, env=env)  # (1, 2)
         else:
             q = self.q_ensemble.values(obs, acts)  # (K, 2B) or (K, 2)

@@ -64,7 +64,8 @@ def test_the_summary_groups_by_mentor_and_method(tmp_path):
 
 def test_each_method_can_come_from_its_own_sweep(tmp_path):
     old, new = tmp_path / "old.csv", tmp_path / "new.csv"
-    write_cells(old, [row("pe-rlhf", "professional", 0, 0.2, 0.5, 9, 0.6), row("haco", "professional", 0, 0.6, 0.1, 0, 0.2),
+    write_cells(old, [row("pe-rlhf", "professional", 0, 0.2, 0.5, 9, 0.6),
+                      row("haco", "professional", 0, 0.6, 0.1, 0, 0.2),
                       row("idm-mobil", "-", 0, 0.42, 0.02)])
     write_cells(new, [row("pe-rlhf", "professional", 0, 0.8, 0.0, 1, 0.3)])
     summary = claims_summary([f"{old}:haco,idm-mobil", f"{new}:pe-rlhf"])

@@ -210,7 +210,8 @@ def _check_imitation_relations(cfg: DictConfig, family: str) -> None:
             raise invalid_value("optim.updates_per_iteration", o.updates_per_iteration,
                         f"must be <= optim.updates ({o.updates})")
     if family == "gail" and cfg.discriminator.batch_size > data_steps:
-        raise invalid_value("discriminator.batch_size", cfg.discriminator.batch_size, f"must be <= data.steps ({data_steps})")
+        raise invalid_value("discriminator.batch_size", cfg.discriminator.batch_size,
+                    f"must be <= data.steps ({data_steps})")
     if family == "hil":
         check_mentor_kwargs(cfg.mentor)
         if o.batch_size > data_steps:

@@ -3,7 +3,8 @@
 ``learning_curves.png``: training episode return and cost (the cost limit dashed), cumulative safety
 violations, training success rate, ``lambda`` (or CPO's constraint violation ``c = J_c - limit``; the
 imitation baselines: takeover rate, takeover data usage, the mentor's share of the data, GAIL's mean
-``D(s, a)`` on the policy's and the mentor's steps) and the losses; ``testing_curves.png`` (:mod:`pe_rlhf.runtime.plots`' test panel) when periodic evaluations
+``D(s, a)`` on the policy's and the mentor's steps) and the losses; ``testing_curves.png``
+(:mod:`pe_rlhf.runtime.plots`' test panel) when periodic evaluations
 were logged.
 """
 

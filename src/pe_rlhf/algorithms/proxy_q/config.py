@@ -180,7 +180,8 @@ def _check_relations(cfg: DictConfig) -> None:
         raise invalid_value("collector.num_workers", c.num_workers,
                     "the single backend runs one env: use 1, or collector.backend=multisync|multiasync")
     if cfg.mentor.name == "human" and c.backend != "single":
-        raise invalid_value("collector.backend", c.backend, "a human mentor drives one env in this process (one person, "
+        raise invalid_value("collector.backend", c.backend,
+                    "a human mentor drives one env in this process (one person, "
                     "one window): use single")
     if c.backend in ("multisync", "ray") and c.frames_per_batch % c.num_workers:
         raise invalid_value("collector.frames_per_batch", c.frames_per_batch,
@@ -190,7 +191,8 @@ def _check_relations(cfg: DictConfig) -> None:
         for field, value in (("collector.realtime_hz", c.realtime_hz),
                              ("optim.async_updates", cfg.optim.async_updates)):
             if value:
-                raise invalid_value(field, value, f"needs collector.backend=single (got {c.backend}): the pacing and the "
+                raise invalid_value(field, value,
+                            f"needs collector.backend=single (got {c.backend}): the pacing and the "
                             "background learner drive one env in this process; use 0 / false")
     if c.warmup_policy is not None and c.warmup_steps < 1:
         raise invalid_value("collector.warmup_policy", c.warmup_policy,
@@ -200,10 +202,12 @@ def _check_relations(cfg: DictConfig) -> None:
         from pe_rlhf.algorithms.proxy_q.value_expert import parse_value_source
 
         if parse_value_source(cfg.selector.value)[0] == "warmup":
-            raise invalid_value("selector.warmup_selection", True, "needs a value source that is not fitted on the warm-up "
+            raise invalid_value("selector.warmup_selection", True,
+                        "needs a value source that is not fitted on the warm-up "
                         "(selector.value=forecast or expert): use auto or false")
         if c.warmup_policy is not None:
-            raise invalid_value("selector.warmup_selection", True, "judges the mentor's warm-up, but collector.warmup_policy "
+            raise invalid_value("selector.warmup_selection", True,
+                        "judges the mentor's warm-up, but collector.warmup_policy "
                         "drives it: use auto or false")
     if cfg.selector.enabled:
         for field in ("collector.warmup_steps", "selector.warmup_fit_steps"):

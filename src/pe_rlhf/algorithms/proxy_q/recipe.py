@@ -74,7 +74,8 @@ def run(cfg: DictConfig, options: RunOptions = RunOptions()) -> dict:
         out.mkdir(parents=True, exist_ok=True)
         save_config(cfg, out / "config.yaml", algorithm_name(cfg))
     resume = bool(options.resume)
-    with MetricsLogger(out, csv=bool(cfg.logger.csv), wandb=bool(cfg.logger.wandb), wandb_mode=str(cfg.logger.wandb_mode),
+    with MetricsLogger(out, csv=bool(cfg.logger.csv), wandb=bool(cfg.logger.wandb),
+                       wandb_mode=str(cfg.logger.wandb_mode),
                        wandb_project=str(cfg.logger.wandb_project), tensorboard=bool(cfg.logger.tensorboard),
                        mlflow=bool(cfg.logger.mlflow),
                        config=to_container(cfg), resume=resume) as logger:

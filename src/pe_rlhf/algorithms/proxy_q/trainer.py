@@ -181,7 +181,8 @@ class ProxyQLearner(Learner):
         self.replay = builders.build_replay_buffer(cfg, balanced=True)
         self.warmup_buffer = builders.build_replay_buffer(cfg)
         fitted = cfg.selector.enabled and builders.value_is_fitted(cfg)  # an expert is frozen: never fitted
-        self.schedule = EnsembleSchedule(int(cfg.collector.warmup_steps), int(cfg.selector.refresh_every) if fitted else 0,
+        self.schedule = EnsembleSchedule(int(cfg.collector.warmup_steps),
+                                         int(cfg.selector.refresh_every) if fitted else 0,
                                          int(cfg.selector.warmup_fit_steps) if fitted else 0,
                                          int(cfg.selector.refresh_steps))
         # selector.refresh_data=all: refreshes also fit on the online transitions (the ensemble sees what the

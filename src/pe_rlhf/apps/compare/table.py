@@ -68,7 +68,8 @@ def _test(key: str, label: str) -> Metric:
 
 
 COLUMNS: dict[str, Metric] = {
-    "takeover_data_usage": Metric("takeover data", ".2f", logged_metrics("train/takeover_data_usage", "takeover_data_usage",
+    "takeover_data_usage": Metric("takeover data", ".2f", logged_metrics("train/takeover_data_usage",
+                                                                  "takeover_data_usage",
                                                                   "mentor_data_share")),
     "total_data": Metric("total data", ".0f", _total_data),
     "train_minutes": Metric("training time (min)", ".1f", _minutes),
