@@ -87,7 +87,7 @@ def plot_table(path: Path, table: list[dict[str, Any]], metrics: Sequence[str]) 
         ax.set_xticks(range(len(shown)), [_label(r) for r in shown], rotation=30, ha="right", fontsize=7)
         ax.set_title(METRICS[metric].label, fontsize=9)
         ax.grid(alpha=0.3)
-        if references:
+        if ax.get_legend_handles_labels()[0]:
             ax.legend(fontsize=7, frameon=False)
     for ax in list(axes.flat)[len(metrics):]:
         ax.set_visible(False)
@@ -121,8 +121,8 @@ def summarise_cells(sources: str | Path | Sequence[str | Path], out: str | Path,
     if paired_against is not None:
         paired = {m: paired_differences(rows, m, paired_against) for m in metrics}
         groups = list(dict.fromkeys(g for by_group in paired.values() for g in by_group))
-        lines = [f"Paired by seed against `{paired_against}` (row minus `{paired_against}`, same method and mentor; "
-                 "resolved where the interval excludes 0):", "",
+        lines = [f"Paired by seed against `{paired_against}` (row minus the `{paired_against}` row of the same mentor "
+                 "and seed, the same method's where it has one; resolved where the interval excludes 0):", "",
                  "| method | mentor | parameter | seeds | " + " | ".join(METRICS[m].label for m in metrics) + " |",
                  "|" + "---|" * (4 + len(metrics))]
         for group in groups:
