@@ -93,6 +93,14 @@ def markdown_table(table: list[dict[str, Any]], metrics: Sequence[str]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def write_summary_csv(path: Path, table: list[dict[str, Any]], metrics: Sequence[str]) -> None:
+    """The aggregated table (:func:`aggregate`) as CSV: group columns, then ``<metric>_{mean,std,lo,hi}``."""
+    header = ["method", "mentor", "parameter", "seeds", "cells"]
+    stats = ("mean", "std", "lo", "hi")
+    write_csv(path, header + [f"{m}_{s}" for m in metrics for s in stats],
+              [[r[k] for k in header] + [r[m][s] for m in metrics for s in stats] for r in table])
+
+
 def write_summary(out: str | Path, cells: Sequence[Cell], metrics: Sequence[str], title: str = "sweep",
                   description: str = "", plots: bool = True) -> dict[str, Path]:
     """``cells.csv``, ``summary.csv``, ``summary.md`` (and the plots, :mod:`pe_rlhf.apps.sweeps.plots`) in ``out``."""
@@ -102,10 +110,7 @@ def write_summary(out: str | Path, cells: Sequence[Cell], metrics: Sequence[str]
     keys = ["cell", "method", "mentor", "parameter", "seed", "status", *METRICS]
     write_csv(out / CELLS_CSV, keys, [[r[k] for k in keys] for r in rows])
     table = aggregate(rows, metrics)
-    header = ["method", "mentor", "parameter", "seeds", "cells"]
-    stats = ("mean", "std", "lo", "hi")
-    write_csv(out / SUMMARY_CSV, header + [f"{m}_{s}" for m in metrics for s in stats],
-               [[r[k] for k in header] + [r[m][s] for m in metrics for s in stats] for r in table])
+    write_summary_csv(out / SUMMARY_CSV, table, metrics)
     finished = sum(r["status"] == "finished" for r in rows)
     text = [f"# Sweep {title}", ""] + ([description, ""] if description else [])
     text += [(f"{finished} of {len(rows)} cells finished; mean [95% bootstrap CI] over the finished seeds; "

@@ -19,7 +19,7 @@ from typing import Any, Sequence
 
 from pe_rlhf.apps.sweeps.cells import NONE
 from pe_rlhf.apps.sweeps.metrics import METRICS, NAN
-from pe_rlhf.apps.sweeps.summary import SUMMARY_CSV, SUMMARY_MD, aggregate, markdown_table, write_csv
+from pe_rlhf.apps.sweeps.summary import SUMMARY_CSV, SUMMARY_MD, aggregate, markdown_table, write_summary_csv
 from pe_rlhf.evaluation.statistics import interval_text, seed_stats
 
 SUMMARY_PNG = "summary.png"
@@ -109,10 +109,7 @@ def summarise_cells(sources: str | Path | Sequence[str | Path], out: str | Path,
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     table = aggregate(rows, metrics)
-    header = ["method", "mentor", "parameter", "seeds", "cells"]
-    stats = ("mean", "std", "lo", "hi")
-    write_csv(out / SUMMARY_CSV, header + [f"{m}_{s}" for m in metrics for s in stats],
-              [[r[k] for k in header] + [r[m][s] for m in metrics for s in stats] for r in table])
+    write_summary_csv(out / SUMMARY_CSV, table, metrics)
     finished = sum(r["status"] == "finished" for r in rows)
     text = [f"# {title}", ""] + ([description, ""] if description else [])
     text += [f"{finished} of {len(rows)} cells finished; mean [95% bootstrap CI] over the finished seeds.", "",
