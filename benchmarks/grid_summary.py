@@ -18,7 +18,8 @@ DEFAULT = ["success_rate", "safety_violation", "train_safety_violations", "takeo
 
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("cells", nargs="+", help="cells.csv files (a sweep's, or rows merged by hand)")
+    parser.add_argument("cells", nargs="+", help="cells.csv files (a sweep's, or rows merged by hand); "
+                        "PATH:METHOD,METHOD keeps only those methods of PATH")
     parser.add_argument("--out", required=True)
     parser.add_argument("--title", default="sweep")
     parser.add_argument("--description", default="")

@@ -1,6 +1,6 @@
 """Sweeps: grid expansion and naming, config errors naming the field, bookkeeping (finished cells are not
 rerun, crashed ones resume), summary aggregation from synthetic cell folders, and a 2-cell sweep on local
-Ray with tiny budgets."""
+Ray and as local processes with tiny budgets."""
 
 from __future__ import annotations
 
@@ -314,6 +314,57 @@ def test_two_cell_sweep_on_local_ray(tmp_path):
         assert sorted(again.skipped) == ["haco__s0", "pe-rlhf__s0"] and not again.finished and not again.failed
     finally:
         ray.shutdown()
+
+
+# -- the same sweep without Ray -------------------------------------------------------------------
+def _tiny_sweep(tmp_path) -> Path:
+    tiny = load_script("tests/reliability/_runs.py", "reliability_runs").TINY
+    config = tmp_path / "tiny.yaml"
+    config.write_text(json.dumps({"name": "tiny", "base": [*tiny, "collector.total_frames=100"], "seeds": [0],
+                                  "methods": ["pe-rlhf", "haco"], "metrics": ["success_rate", "value_takeover_rate"]}))
+    return config
+
+
+def test_the_process_backend_runs_the_cells_resumably_without_ray(tmp_path, capsys):
+    from pe_rlhf.apps.cli import main
+
+    config, out = _tiny_sweep(tmp_path), tmp_path / "out"
+    assert main(["sweep", str(config), "--backend", "processes", "--max-parallel", "2", "--no-progress",
+                 "--out", str(out)]) == 0
+    assert "0 cells were finished already, 2 finished now, 0 failed" in capsys.readouterr().out
+    for name in ("haco__s0", "pe-rlhf__s0"):
+        assert json.loads((out / name / FINAL_EVAL).read_text())["episodes"] >= 1
+        assert (out / "logs" / f"{name}.log").read_text().startswith("=== ")
+    assert "| pe-rlhf | 1/1 |" in (out / "summary.md").read_text()
+    assert main(["sweep", str(config), "--backend", "processes", "--no-progress", "--out", str(out)]) == 0
+    assert "2 cells were finished already, 0 finished now, 0 failed" in capsys.readouterr().out
+
+
+def test_the_process_backend_stops_cells_at_the_deadline_and_they_run_again_later(tmp_path, capsys):
+    from pe_rlhf.apps.cli import main
+
+    config, out = _tiny_sweep(tmp_path), tmp_path / "out"
+    assert main(["sweep", str(config), "--backend", "processes", "--max-parallel", "1", "--deadline", "0.5",
+                 "--no-progress", "--out", str(out)]) == 1
+    printed = capsys.readouterr().out
+    assert "0 finished now, 0 failed, 2 stopped" in printed and "stopped: pe-rlhf__s0, haco__s0" in printed
+    assert not list(out.glob(f"*/{FINAL_EVAL}"))  # killed before finishing; the started one has its record
+    assert (out / "pe-rlhf__s0" / CELL_FILE).is_file()
+    plan_text = main(["sweep", str(config), "--dry-run", "--out", str(out)]), capsys.readouterr().out
+    assert "2 cells (0 finished" in plan_text[1]
+
+
+@pytest.mark.parametrize("flags, message", [
+    (["--deadline", "60"], "needs --backend processes"),
+    (["--backend", "processes", "--deadline", "0"], "needs --backend processes and a number of seconds > 0"),
+    (["--backend", "processes", "--address", "ray://head:10001"], "only with --backend ray"),
+])
+def test_process_backend_flags_are_checked(tmp_path, capsys, flags, message):
+    from pe_rlhf.apps.cli import main
+
+    with pytest.raises(SystemExit):
+        main(["sweep", str(_tiny_sweep(tmp_path)), *flags, "--out", str(tmp_path / "out")])
+    assert message in capsys.readouterr().err
 
 
 def test_a_local_ray_runs_the_cells_at_normal_priority(monkeypatch):

@@ -67,3 +67,14 @@ def test_an_unknown_metric_or_a_missing_file_is_named(tmp_path):
     a = _write(tmp_path / "a.csv", [_row("full", 0, 0.4)])
     with pytest.raises(ValueError, match=r"metrics \['speed'\]: not among"):
         summarise_cells([a], tmp_path / "out", ["speed"])
+
+
+def test_a_source_can_keep_only_some_methods_so_a_table_takes_each_method_from_its_own_sweep(tmp_path):
+    """Table 1's RLHF rows: HG-DAgger from one sweep, HACO from another that also ran an older PE-RLHF."""
+    old = _write(tmp_path / "old.csv", [_row("-", 0, 0.6, method="haco"), _row("-", 0, 0.1, method="pe-rlhf")])
+    new = _write(tmp_path / "new.csv", [_row("-", 0, 0.2, method="hg-dagger"), _row("-", 1, 0.4, method="hg-dagger")])
+    rows = read_rows([f"{old}:haco", new])
+    assert sorted((r["method"], r["seed"], r["success_rate"]) for r in rows) == [
+        ("haco", 0, 0.6), ("hg-dagger", 0, 0.2), ("hg-dagger", 1, 0.4)]
+    with pytest.raises(FileNotFoundError, match="gone.csv: no such cells.csv"):
+        read_rows([f"{tmp_path / 'gone.csv'}:haco"])

@@ -21,6 +21,7 @@ import json
 import math
 from pathlib import Path
 
+from pe_rlhf.apps.sweeps.summary import read_cells_csv
 from pe_rlhf.evaluation.statistics import bootstrap_interval  # re-exported: older callers import it here
 
 COLUMNS = {"success": ("success_rate", False), "test_safety": ("safety_violation", True),
@@ -71,20 +72,9 @@ def add_violations_after(sweep_dir: str | Path, step: int, out_csv: str | Path) 
 
 def read_cells(sources: str | Path | list[str | Path]) -> list[dict]:
     """The finished rows of one or more ``cells.csv``; a source ``PATH:METHOD,METHOD`` keeps only those methods
-    (sweep names, e.g. ``runs/sweeps/claims/cells.csv:haco,idm-mobil``), so that the claims can take each method
-    from the sweep that ran its final configuration."""
-    rows = []
-    for source in [sources] if isinstance(sources, (str, Path)) else sources:
-        path, methods = Path(source), None
-        if not path.is_file() and ":" in str(source):
-            head, _, tail = str(source).rpartition(":")
-            path, methods = Path(head), {m.strip() for m in tail.split(",") if m.strip()}
-        if not path.is_file():
-            raise FileNotFoundError(f"{path}: no such cells.csv")
-        with open(path, newline="") as f:
-            rows += [r for r in csv.DictReader(f) if r.get("status") == "finished"
-                     and (methods is None or r["method"] in methods)]
-    return rows
+    (:func:`~pe_rlhf.apps.sweeps.summary.read_cells_csv`), so that the claims can take each method from the sweep
+    that ran its final configuration."""
+    return [r for r in read_cells_csv(sources) if r.get("status") == "finished"]
 
 
 def claims_summary(cells_csv: str | Path | list[str | Path]) -> dict:

@@ -5,6 +5,7 @@
     pe-rlhf sweep recipes/sweeps/warmup.yaml --address ray://head:10001   # a Ray cluster (shared OUT)
     pe-rlhf sweep recipes/sweeps/warmup.yaml --dry-run                    # the cells, their state, no run
     pe-rlhf sweep recipes/sweeps/lower_bound.yaml --only adversarial       # only the cells whose name matches
+    pe-rlhf sweep recipes/sweeps/warmup.yaml --backend processes --deadline 540   # no Ray; stop after 9 min
 """
 
 from __future__ import annotations
@@ -60,6 +61,10 @@ def run_sweep_command(args: argparse.Namespace, parser: argparse.ArgumentParser)
 
     if args.max_parallel is not None and args.max_parallel < 1:
         parser.error(f"--max-parallel {args.max_parallel}: must be >= 1")
+    if args.deadline is not None and (args.backend != "processes" or args.deadline <= 0):
+        parser.error(f"--deadline {args.deadline}: needs --backend processes and a number of seconds > 0")
+    if args.address is not None and args.backend != "ray":
+        parser.error(f"--address {args.address}: a Ray cluster's address, only with --backend ray")
     try:
         spec = load_sweep(args.config)
         out = Path(args.out) if args.out else DEFAULT_ROOT / spec.name
@@ -75,28 +80,41 @@ def run_sweep_command(args: argparse.Namespace, parser: argparse.ArgumentParser)
         return 0
     out.mkdir(parents=True, exist_ok=True)
     shutil.copyfile(args.config, out / "sweep.yaml")
-    try:
-        report = run_cells(cells, out, address=args.address, max_parallel=args.max_parallel,
-                           num_cpus=spec.num_cpus, progress=not args.no_progress, name=spec.name)
-    except RuntimeError as e:  # ray missing
-        parser.error(str(e))
+    common = dict(max_parallel=args.max_parallel, num_cpus=spec.num_cpus, progress=not args.no_progress,
+                  name=spec.name)
+    if args.backend == "processes":
+        from pe_rlhf.apps.sweeps.processes import run_cells_in_processes
+
+        report = run_cells_in_processes(cells, out, deadline=args.deadline, **common)
+    else:
+        try:
+            report = run_cells(cells, out, address=args.address, **common)
+        except RuntimeError as e:  # ray missing
+            parser.error(str(e))
     paths = write_summary(out, all_cells, spec.metrics, title=spec.name, description=spec.description)
     print(f"{len(report.skipped)} cells were finished already, {len(report.finished)} finished now, "
-          f"{len(report.failed)} failed")
+          f"{len(report.failed)} failed" + (f", {len(report.stopped)} stopped" if report.stopped else ""))
     print(paths["summary_md"].read_text())
     for name, error in report.failed.items():
         print(f"failed: {name}: {error} (rerun the same command to retry it; log in {out / 'logs' / name}.log)")
-    return 1 if report.failed else 0
+    if report.stopped:
+        print(f"stopped: {', '.join(report.stopped)} (rerun the same command to continue them)")
+    return 1 if report.failed or report.stopped else 0
 
 
 def add_sweep_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     """``pe-rlhf sweep``: a grid of recipe runs as Ray tasks, resumable, summarised."""
-    p = subparsers.add_parser("sweep", help="run a grid of training runs (Ray), summarise them",
+    p = subparsers.add_parser("sweep", help="run a grid of training runs (Ray or local processes), summarise them",
                               description="Run a sweep config's cells (method x mentor x parameter x seed) as Ray "
-                              "tasks; finished cells are skipped, so rerunning continues a sweep.")
+                              "tasks or local processes; finished cells are skipped, so rerunning continues a "
+                              "sweep.")
     p.add_argument("config", metavar="CONFIG.yaml", help="sweep config (see recipes/sweeps/)")
     p.add_argument("--out", metavar="DIR", help="sweep folder (default runs/sweeps/<name>)")
+    p.add_argument("--backend", choices=("ray", "processes"), default="ray", help="ray: a Ray task a cell (default); "
+                   "processes: a local process a cell, no Ray needed")
     p.add_argument("--address", metavar="ADDR", help="Ray cluster address (default: a local Ray on this machine)")
+    p.add_argument("--deadline", type=float, metavar="SECONDS", help="with --backend processes: stop the running "
+                   "cells after this many seconds (they resume on the next run)")
     p.add_argument("--max-parallel", type=int, metavar="N", help="cells running at once (default: as many as the "
                    "CPUs hold at the config's resources.num_cpus)")
     p.add_argument("--only", action="append", metavar="REGEX", help="run only the cells whose name matches "

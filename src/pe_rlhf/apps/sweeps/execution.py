@@ -5,7 +5,8 @@ Each task runs the cell's recipe in the Ray worker process (:func:`run_cell`): `
 torch's intra-op threads set to the cell's CPUs (1 by default), ``SDL_VIDEODRIVER=dummy``, stdout and
 stderr appended to ``OUT/logs/<cell>.log``. A cell that raises is reported and left unfinished; the next
 invocation reruns it (from its newest checkpoint when it has one). With a multi-node cluster, ``OUT``
-must be a path every node sees (a shared filesystem) and pe_rlhf installed on every node.
+must be a path every node sees (a shared filesystem) and pe_rlhf installed on every node. Without Ray, the
+same cells run as local processes: :mod:`pe_rlhf.apps.sweeps.processes`.
 """
 
 from __future__ import annotations
@@ -26,11 +27,13 @@ THREAD_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS")
 
 @dataclass
 class SweepReport:
-    """What one invocation did: cells skipped (finished before), finished now (seconds), failed (error)."""
+    """What one invocation did: cells skipped (finished before), finished now (seconds), failed (error), stopped
+    (killed or left unstarted at a deadline or an interrupt: the process backend)."""
 
     skipped: list[str] = field(default_factory=list)
     finished: dict[str, float] = field(default_factory=dict)
     failed: dict[str, str] = field(default_factory=dict)
+    stopped: list[str] = field(default_factory=list)
 
 
 @contextlib.contextmanager
@@ -109,7 +112,7 @@ def run_cell(cell: Cell, out: str, threads: int = 1) -> dict:
     return {"name": cell.name, "seconds": time.time() - started, "resumed": resumed}
 
 
-def _running(names: list[str], width: int = 100) -> str:
+def running_text(names: list[str], width: int = 100) -> str:
     text = "running: " + ", ".join(names)
     return text if len(text) <= width else text[: width - 12] + f"... ({len(names)})"
 
@@ -163,7 +166,7 @@ def run_cells(cells: list[Cell], out: str | Path, *, address: str | None = None,
             while pending and len(in_flight) < capacity:
                 cell = pending.pop(0)
                 in_flight[task.remote(cell, str(out.resolve()), threads)] = cell
-            bar.set_postfix_str(_running([c.name for c in in_flight.values()]))
+            bar.set_postfix_str(running_text([c.name for c in in_flight.values()]))
             done, _ = ray.wait(list(in_flight), num_returns=1)
             for ref in done:
                 cell = in_flight.pop(ref)

@@ -51,6 +51,23 @@ def cell_rows(out: str | Path, cells: Sequence[Cell]) -> list[dict[str, Any]]:
     return rows
 
 
+def read_cells_csv(sources: str | Path | Sequence[str | Path]) -> list[dict[str, str]]:
+    """The rows of one or more ``cells.csv``, as written (strings). A source ``PATH:METHOD,METHOD`` keeps only
+    those methods (sweep names, e.g. ``runs/sweeps/claims/cells.csv:haco,idm-mobil``), so that a table can take
+    each method from the sweep that ran its final configuration."""
+    rows = []
+    for source in [sources] if isinstance(sources, (str, Path)) else sources:
+        path, methods = Path(source), None
+        if not path.is_file() and ":" in str(source):
+            head, _, tail = str(source).rpartition(":")
+            path, methods = Path(head), {m.strip() for m in tail.split(",") if m.strip()}
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: no such cells.csv")
+        with open(path, newline="") as f:
+            rows += [r for r in csv.DictReader(f) if methods is None or r["method"] in methods]
+    return rows
+
+
 def mean_std(values: Sequence[float]) -> dict[str, float]:
     """Mean and population std of the finite values, and how many there were (NaN, NaN, 0 if none)."""
     finite = [float(v) for v in values if v is not None and math.isfinite(float(v))]

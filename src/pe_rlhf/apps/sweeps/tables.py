@@ -12,33 +12,28 @@ bootstrap CI over the seeds both finished): the resolved differences are those w
 
 from __future__ import annotations
 
-import csv
 import math
 from pathlib import Path
 from typing import Any, Sequence
 
 from pe_rlhf.apps.sweeps.cells import NONE
 from pe_rlhf.apps.sweeps.metrics import METRICS, NAN
-from pe_rlhf.apps.sweeps.summary import SUMMARY_CSV, SUMMARY_MD, aggregate, markdown_table, write_summary_csv
+from pe_rlhf.apps.sweeps.summary import (SUMMARY_CSV, SUMMARY_MD, aggregate, markdown_table, read_cells_csv,
+                                         write_summary_csv)
 from pe_rlhf.evaluation.statistics import interval_text, seed_stats
 
 SUMMARY_PNG = "summary.png"
 
 
 def read_rows(sources: str | Path | Sequence[str | Path]) -> list[dict[str, Any]]:
-    """Every row of the ``cells.csv`` files, metric values as floats (NaN where empty), seeds as ints."""
-    rows = []
-    for path in [sources] if isinstance(sources, (str, Path)) else sources:
-        path = Path(path)
-        if not path.is_file():
-            raise FileNotFoundError(f"{path}: no such cells.csv")
-        with open(path, newline="") as f:
-            for row in csv.DictReader(f):
-                for key in METRICS:
-                    value = row.get(key)
-                    row[key] = float(value) if value not in (None, "", "nan") else NAN
-                row["seed"] = int(row["seed"])
-                rows.append(row)
+    """Every row of the ``cells.csv`` sources (:func:`~pe_rlhf.apps.sweeps.summary.read_cells_csv`: a source
+    ``PATH:METHOD,METHOD`` keeps only those methods), metric values as floats (NaN where empty), seeds as ints."""
+    rows = read_cells_csv(sources)
+    for row in rows:
+        for key in METRICS:
+            value = row.get(key)
+            row[key] = float(value) if value not in (None, "", "nan") else NAN
+        row["seed"] = int(row["seed"])
     return rows
 
 
