@@ -6,8 +6,9 @@ that sweep's own cells (mean and 95% bootstrap CI over seeds).
     python benchmarks/evidence_grid.py --only physics_ablation --only loss_ablations
     python benchmarks/evidence_grid.py --summarise-only               # the tables from the cells there are
 
-Run from the repository root (the warm-up sweep reads the SAC-RS expert at ``runs/experts/sac_rs_seed0``,
-trained here first when it is missing). Sweeps run with ``pe-rlhf sweep`` (``--backend processes`` by default:
+Run from the repository root (the warm-up sweep reads the SAC-RS expert at ``runs/experts/sac_rs_seed0``: when
+it is missing, a copy of the one the grid used, kept in ``docs/results/claims/warmup/expert_sac_rs_seed0``, or
+one trained here when that is gone too). Sweeps run with ``pe-rlhf sweep`` (``--backend processes`` by default:
 no Ray needed), into ``--runs/<sweep>``, resumable: a rerun continues where the last one stopped. Summaries go
 to ``--out/<experiment>/``: ``summary.{md,csv,png}`` (:func:`pe_rlhf.apps.sweeps.tables.summarise_cells`, paired
 by seed against the experiment's reference row where it has one), and for the claims ``summary.json`` with the
@@ -28,6 +29,7 @@ from typing import NamedTuple
 from pathlib import Path
 
 EXPERT = Path("runs/experts/sac_rs_seed0")
+KEPT_EXPERT = Path("docs/results/claims/warmup/expert_sac_rs_seed0")  # the one the grid's warm-up cells used
 EXPERT_COMMAND = [sys.executable, "recipes/sac_rs/train.py", "profile=cpu", "seed=0", "env.lane_features=true",
                   "collector.total_frames=30000", "eval.every_frames=0", "eval.episodes=50", "--out", str(EXPERT)]
 COLLAPSE_STEP = 15000
@@ -72,7 +74,7 @@ def grid_cost(experiments, runs: Path, minutes_per_cell: float) -> tuple[list[st
 
     lines, hours = [], 0.0
     for experiment in experiments:
-        if experiment.needs_expert and not (EXPERT / "final_eval.json").is_file():
+        if experiment.needs_expert and not (EXPERT / "final_eval.json").is_file() and not KEPT_EXPERT.is_dir():
             hours += minutes_per_cell / 60
             lines.append(f"{experiment.name:20s} {'(its expert)':20s}   1 SAC-RS run, not trained yet; "
                          f"{minutes_per_cell / 60:5.1f} core-hours to go")
@@ -97,8 +99,15 @@ def run_sweep(sweep: str, runs: Path, args: argparse.Namespace) -> int:
 
 
 def ensure_expert() -> None:
-    """The warm-up sweep's expert policy (a SAC-RS run with the env reward), trained here if missing."""
+    """The warm-up sweep's expert policy (a SAC-RS run with the env reward): the kept one copied in, else trained
+    here."""
     if (EXPERT / "final_eval.json").is_file():
+        return
+    if (KEPT_EXPERT / "actor.pt").is_file():
+        import shutil
+
+        print(f"the warm-up expert: a copy of {KEPT_EXPERT}", flush=True)
+        shutil.copytree(KEPT_EXPERT, EXPERT, dirs_exist_ok=True)
         return
     print(f"training the warm-up expert: {' '.join(EXPERT_COMMAND)}", flush=True)
     subprocess.run(EXPERT_COMMAND, check=True)

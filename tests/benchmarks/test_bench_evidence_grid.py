@@ -35,6 +35,7 @@ def test_the_dry_run_costs_every_training_cell_of_every_sweep(tmp_path, monkeypa
     bench = _bench()
     monkeypatch.chdir(ROOT)
     monkeypatch.setattr(bench, "EXPERT", tmp_path / "no_expert")
+    monkeypatch.setattr(bench, "KEPT_EXPERT", tmp_path / "no_kept_expert")
     assert bench.main(["--dry-run", "--runs", str(tmp_path / "runs"), "--minutes-per-cell", "60"]) == 0
     printed = capsys.readouterr().out
     sweeps = [s for e in bench.EXPERIMENTS for s in e.sweeps]
@@ -64,6 +65,20 @@ def test_summaries_pair_against_the_reference_row_and_the_claims_hold_each_mento
     claims = json.loads((out / "claims" / "summary.json").read_text())
     assert sorted(claims) == ["amateur", "professional"] and claims["amateur"]["haco"]["seeds"] == 2
     assert claims["professional"]["pe_rlhf"]["success"] == pytest.approx([0.5, 0.5, 0.5])
+
+
+def test_the_kept_expert_is_copied_in_rather_than_trained_again(tmp_path, monkeypatch):
+    bench = _bench()
+    kept, target = tmp_path / "kept", tmp_path / "runs" / "experts" / "sac_rs_seed0"
+    kept.mkdir()
+    (kept / "actor.pt").write_bytes(b"weights")
+    (kept / "final_eval.json").write_text("{}")
+    monkeypatch.setattr(bench, "EXPERT", target)
+    monkeypatch.setattr(bench, "KEPT_EXPERT", kept)
+    monkeypatch.setattr(bench.subprocess, "run", lambda *a, **k: pytest.fail("trained instead of copied"))
+    bench.ensure_expert()
+    assert (target / "actor.pt").read_bytes() == b"weights"
+    bench.ensure_expert()  # there now: nothing to do
 
 
 def test_it_must_run_from_the_repository_root(tmp_path, monkeypatch, capsys):
