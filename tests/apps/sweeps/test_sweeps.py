@@ -388,3 +388,15 @@ def test_a_local_ray_runs_the_cells_at_normal_priority(monkeypatch):
         assert ray.get(niceness.remote()) <= os.nice(0)  # not below the sweep's own priority (Ray: +15)
     finally:
         ray.shutdown()
+
+
+def test_a_baseline_without_a_warm_up_reads_as_zero_warm_up_steps(tmp_path):
+    """HG-DAgger's config has no collector.warmup_steps: the sweep's curves must not fail on it (table1_rlhf)."""
+    from pe_rlhf.apps.sweeps.plots import run_warmup_steps
+
+    (tmp_path / "hg").mkdir()
+    (tmp_path / "hg" / "config.yaml").write_text("collector:\n  total_frames: 100\n")
+    (tmp_path / "pe").mkdir()
+    (tmp_path / "pe" / "config.yaml").write_text("collector:\n  warmup_steps: 2500\n")
+    assert run_warmup_steps(tmp_path / "hg") == 0.0 and run_warmup_steps(tmp_path / "pe") == 2500.0
+    assert run_warmup_steps(tmp_path / "none") == 0.0

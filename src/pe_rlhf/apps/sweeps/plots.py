@@ -153,11 +153,14 @@ def plot_summary(path: Path, cells: Sequence[Cell], table: list[dict], metrics: 
 
 
 def run_warmup_steps(run_dir: Path) -> float:
-    """A run folder's ``collector.warmup_steps`` (0 without a ``config.yaml``)."""
+    """A run folder's ``collector.warmup_steps`` (0 without a ``config.yaml`` or without the key: a baseline
+    such as HG-DAgger has no warm-up)."""
     from omegaconf import OmegaConf
 
     config = Path(run_dir) / "config.yaml"
-    return float(OmegaConf.load(config).collector.warmup_steps) if config.is_file() else 0.0
+    if not config.is_file():
+        return 0.0
+    return float(OmegaConf.select(OmegaConf.load(config), "collector.warmup_steps", default=0) or 0)
 
 
 def run_curve(path: Path, column: str) -> dict[float, float]:
