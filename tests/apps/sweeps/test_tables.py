@@ -78,3 +78,18 @@ def test_a_source_can_keep_only_some_methods_so_a_table_takes_each_method_from_i
         ("haco", 0, 0.6), ("hg-dagger", 0, 0.2), ("hg-dagger", 1, 0.4)]
     with pytest.raises(FileNotFoundError, match="gone.csv: no such cells.csv"):
         read_rows([f"{tmp_path / 'gone.csv'}:haco"])
+
+
+def test_one_numeric_parameter_is_read_as_an_axis_and_anything_else_is_not(tmp_path):
+    """A sensitivity (epsilon_select=-0.5 ... 3) plots as lines against the value; named variants do not."""
+    from pe_rlhf.apps.sweeps.tables import numeric_parameters
+
+    rows = [_row("epsilon_select=-0.5", 0, 0.4), _row("epsilon_select=3", 0, 0.2, mentor="amateur"),
+            _row("-", 0, 0.5, method="idm-mobil", mentor="-")]
+    result = summarise_cells([_write(tmp_path / "e.csv", rows)], tmp_path / "out", ["success_rate"])
+    assert numeric_parameters(result["table"]) == ("epsilon_select", {"epsilon_select=-0.5": -0.5,
+                                                                       "epsilon_select=3": 3.0})
+    assert (tmp_path / "out" / "summary.png").stat().st_size > 1000
+    assert numeric_parameters([{"mentor": "professional", "parameter": "full"}]) is None
+    assert numeric_parameters([{"mentor": "m", "parameter": "a=1"}, {"mentor": "m", "parameter": "b=2"}]) is None
+    assert numeric_parameters([{"mentor": "m", "parameter": "a=x"}]) is None

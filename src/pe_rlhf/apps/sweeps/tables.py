@@ -5,7 +5,9 @@ commits, or whose run folders are gone (the rows are what a sweep keeps of each 
 (:mod:`pe_rlhf.apps.sweeps.summary`: ``cell, method, mentor, parameter, seed, status`` and the metrics), groups
 them by (method, mentor, parameter) as :func:`~pe_rlhf.apps.sweeps.summary.aggregate` does (mean and 95%
 bootstrap CI over the finished seeds), and writes ``summary.csv``, ``summary.md`` and ``summary.png`` (a point
-and its interval per row, evaluation-only rows as dashed lines). With ``paired_against=PARAMETER`` each row also
+and its interval per row, evaluation-only rows as dashed lines; where every trained row's parameter is one
+numeric setting, ``key=value`` with the same key, a line per method and mentor against that value instead, as
+the paper draws a sensitivity). With ``paired_against=PARAMETER`` each row also
 gets the paired difference to that parameter's row of the same method and mentor, seed by seed (mean and 95%
 bootstrap CI over the seeds both finished): the resolved differences are those whose interval excludes 0.
 """
@@ -62,9 +64,28 @@ def _label(row: dict[str, Any]) -> str:
     return " ".join(parts)
 
 
+def numeric_parameters(table: Sequence[dict[str, Any]]) -> tuple[str, dict[str, float]] | None:
+    """``(key, {parameter: value})`` when every trained row's parameter is ``key=<number>`` with one key
+    (``epsilon_select=-0.5``, ``warmup_steps=10000``); else None."""
+    key, values = None, {}
+    for row in table:
+        if row["mentor"] == NONE:
+            continue
+        name, sep, text = str(row["parameter"]).partition("=")
+        try:
+            value = float(text)
+        except ValueError:
+            return None
+        if not sep or (key is not None and name != key) or not math.isfinite(value):
+            return None
+        key, values[row["parameter"]] = name, value
+    return (key, values) if values else None
+
+
 def plot_table(path: Path, table: list[dict[str, Any]], metrics: Sequence[str]) -> Path:
-    """A panel per metric: each trained row's mean and 95% CI; evaluation-only rows (no mentor) as dashed lines."""
-    from pe_rlhf.apps.sweeps.plots import _ci_yerr, _pyplot  # noqa: PLC2701 - the same package
+    """A panel per metric: each trained row's mean and 95% CI; evaluation-only rows (no mentor) as dashed lines.
+    Rows of one numeric parameter (:func:`numeric_parameters`) draw a line per method and mentor against it."""
+    from pe_rlhf.apps.sweeps.plots import _ci_yerr, _panel, _pyplot  # noqa: PLC2701 - the same package
 
     plt = _pyplot()
     trained = [r for r in table if r["mentor"] != NONE]
@@ -72,7 +93,13 @@ def plot_table(path: Path, table: list[dict[str, Any]], metrics: Sequence[str]) 
     cols = min(3, len(metrics))
     nrows = math.ceil(len(metrics) / cols)
     fig, axes = plt.subplots(nrows, cols, figsize=(4.4 * cols, 3.6 * nrows), squeeze=False)
+    numeric = numeric_parameters(table)
     for ax, metric in zip(axes.flat, metrics):
+        if numeric is not None:
+            _panel(ax, table, metric, numeric[1])
+            ax.set_xlabel(numeric[0], fontsize=8)
+            ax.legend(fontsize=7, frameon=False)
+            continue
         shown = [r for r in trained if r[metric]["n"]]
         ax.errorbar(range(len(shown)), [r[metric]["mean"] for r in shown], yerr=_ci_yerr([r[metric] for r in shown]),
                     marker="o", capsize=3, linestyle="none", color="C0")
@@ -129,4 +156,4 @@ def summarise_cells(sources: str | Path | Sequence[str | Path], out: str | Path,
     return {"table": table, "paired": paired}
 
 
-__all__ = ["paired_differences", "plot_table", "read_rows", "summarise_cells"]
+__all__ = ["numeric_parameters", "paired_differences", "plot_table", "read_rows", "summarise_cells"]
