@@ -7,7 +7,7 @@ import csv
 import pytest
 
 from pe_rlhf.apps.sweeps.metrics import METRICS
-from pe_rlhf.apps.sweeps.tables import paired_differences, read_rows, summarise_cells
+from pe_rlhf.apps.sweeps.tables import numeric_parameters, paired_differences, read_rows, summarise_cells
 
 HEADER = ["cell", "method", "mentor", "parameter", "seed", "status", *METRICS]
 
@@ -82,8 +82,6 @@ def test_a_source_can_keep_only_some_methods_so_a_table_takes_each_method_from_i
 
 def test_one_numeric_parameter_is_read_as_an_axis_and_anything_else_is_not(tmp_path):
     """A sensitivity (epsilon_select=-0.5 ... 3) plots as lines against the value; named variants do not."""
-    from pe_rlhf.apps.sweeps.tables import numeric_parameters
-
     rows = [_row("epsilon_select=-0.5", 0, 0.4), _row("epsilon_select=3", 0, 0.2, mentor="amateur"),
             _row("-", 0, 0.5, method="idm-mobil", mentor="-")]
     result = summarise_cells([_write(tmp_path / "e.csv", rows)], tmp_path / "out", ["success_rate"])
