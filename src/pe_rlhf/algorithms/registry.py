@@ -6,7 +6,7 @@ turn the recipe into the method (HACO = the PE-RLHF recipe without physics and s
 display name, and which config key a mentor is set with (None: the method has no mentor).
 
 Families:
-- ``proxy_q``: the reward-free proxy-Q learners (PE-RLHF, HACO, HAIM-DRL), run by
+- ``proxy_q``: the reward-free proxy-Q learners (PE-RLHF, HACO, HAIM-DRL, PVP), run by
   :func:`pe_rlhf.algorithms.proxy_q.recipe.main`;
 - ``sac``, ``ppo``, ``cpo``: reward-trained RL baselines, ``offline`` (BC, CQL), ``gail``, ``hil`` (HG-DAgger, IWR),
   run by :func:`pe_rlhf.algorithms.baselines.main`;
@@ -65,6 +65,7 @@ ALGORITHMS: dict[str, Algorithm] = {
         Algorithm("pe-rlhf", "PE-RLHF", PROXY_Q, "pe_rlhf"),
         Algorithm("haco", "HACO", PROXY_Q, "pe_rlhf", ("physics.enabled=false", "selector.enabled=false")),
         Algorithm("haim-drl", "HAIM-DRL", PROXY_Q, "haim_drl"),
+        Algorithm("pvp", "PVP", PROXY_Q, "pvp"),
         Algorithm("idm-mobil", "IDM-MOBIL", EVALUATE, EVALUATE, policy="idm-mobil", mentor_key=None),
         *(_baseline(key) for key in BASELINE_METHODS),
     )

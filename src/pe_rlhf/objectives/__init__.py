@@ -1,4 +1,5 @@
-"""TorchRL ``LossModule``s: PE-RLHF's proxy-Q loss (HACO without physics), the Q-ensemble estimator's TD loss
+"""TorchRL ``LossModule``s: PE-RLHF's proxy-Q loss (HACO without physics) and
+PVP's bounded proxy values, the Q-ensemble estimator's TD loss
 and its fit, the optimiser and target steps of every learner, and what TorchRL lacks for the safe-RL baselines
 (SAC-Lag, PPO-Lag, CPO)."""
 
@@ -6,8 +7,9 @@ from pe_rlhf.objectives.cpo import CPOLoss
 from pe_rlhf.objectives.lagrangian import LagrangeMultiplier, PPOLagLoss, SACLagLoss
 from pe_rlhf.objectives.optimizer_steps import ForeachSoftUpdate, make_adam
 from pe_rlhf.objectives.perlhf import PERLHFLoss
+from pe_rlhf.objectives.proxy_value import ProxyValueLoss
 from pe_rlhf.objectives.q_ensemble_fit import fit_q_ensemble
 from pe_rlhf.objectives.q_ensemble_td import QEnsembleTDLoss
 
-__all__ = ["CPOLoss", "ForeachSoftUpdate", "LagrangeMultiplier", "PERLHFLoss", "PPOLagLoss", "QEnsembleTDLoss",
-           "SACLagLoss", "fit_q_ensemble", "make_adam"]
+__all__ = ["CPOLoss", "ForeachSoftUpdate", "LagrangeMultiplier", "PERLHFLoss", "PPOLagLoss", "ProxyValueLoss",
+           "QEnsembleTDLoss", "SACLagLoss", "fit_q_ensemble", "make_adam"]

@@ -43,7 +43,7 @@ from pe_rlhf.objectives import PERLHFLoss, make_adam
 from pe_rlhf.physics import IDMMobilPolicy, SafetyForecastConfig, SafetyForecastValue
 from pe_rlhf.runtime.world import build_mentor, obs_dim
 from pe_rlhf.threads import thread_budget
-from pe_rlhf.algorithms.proxy_q.model_builders import build_actor, build_loss  # noqa: F401 (re-exported)
+from pe_rlhf.algorithms.proxy_q.model_builders import build_actor, build_loss, uses_proxy_values  # noqa: F401
 from pe_rlhf.algorithms.proxy_q.takeover_replay import TakeoverBalancedReplayBuffer
 from pe_rlhf.algorithms.proxy_q.value_expert import load_value_expert, parse_value_source
 from pe_rlhf.transforms import (
@@ -288,9 +288,27 @@ def build_replay_buffer(cfg, balanced: bool = False) -> TensorDictReplayBuffer |
     return TensorDictReplayBuffer(storage=LazyTensorStorage(int(rb.size)), batch_size=int(rb.batch_size))
 
 
+def build_collection_policy(cfg, actor):
+    """What the collector runs: ``actor``, or with ``collector.exploration_noise`` > 0 (a deterministic actor,
+    ``loss.objective=proxy_value``) ``actor`` then TorchRL's ``AdditiveGaussianModule`` (a constant sigma; no noise
+    under deterministic exploration, so evaluation sees the bare actor)."""
+    sigma = float(cfg.collector.get("exploration_noise", 0.0))
+    if sigma <= 0 or not uses_proxy_values(cfg):
+        return actor
+    from tensordict.nn import TensorDictSequential
+    from torchrl.modules import AdditiveGaussianModule
+
+    noise = AdditiveGaussianModule(actor.spec, sigma_init=sigma, sigma_end=sigma, annealing_num_steps=1,
+                                   action_key="action")
+    return TensorDictSequential(actor, noise)
+
+
 def build_optimizers(cfg, loss: PERLHFLoss) -> dict[str, torch.optim.Optimizer]:
     """One Adam per loss term, each over the parameters that term trains."""
     lr = float(cfg.optim.lr)
+    if uses_proxy_values(cfg):
+        return {"actor": make_adam(loss.actor_network_params.flatten_keys().values(), lr=lr),
+                "qvalue": make_adam(loss.qvalue_network_params.flatten_keys().values(), lr=lr)}
     optimizers = {
         "actor": make_adam(loss.actor_network_params.flatten_keys().values(), lr=lr),
         "qvalue": make_adam(loss.qvalue_network_params.flatten_keys().values(), lr=lr),

@@ -41,7 +41,7 @@ from pe_rlhf.algorithms.proxy_q.config_profiles import PROFILES
 from pe_rlhf.algorithms.proxy_q.config_schema import PROXY_Q, RULES, default
 
 RECIPE_CONFIG = Path("pe_rlhf") / "config.yaml"  # relative to the recipes directory
-PROXY_Q_ALGORITHMS = ("pe-rlhf", "haco", "haim-drl")  # this recipe's methods, by registry name
+PROXY_Q_ALGORITHMS = ("pe-rlhf", "haco", "haim-drl", "pvp")  # this recipe's methods, by registry name
 
 # A person drives at a steady frame rate while the learner runs beside acting (see
 # pe_rlhf.transforms.RealtimePacing, pe_rlhf.algorithms.proxy_q.background_updates); load_config applies these
@@ -221,7 +221,8 @@ def _check_relations(cfg: DictConfig) -> None:
 
 def method_name(cfg: DictConfig) -> str:
     """``"PE-RLHF"`` (physics + selector), ``"HACO"`` (neither) or ``"HAIM-DRL"`` (HACO with
-    ``disturbance.enabled``; PE-RLHF with it is ``"PE-RLHF+disturbance"``); the mixed cases are errors.
+    ``disturbance.enabled``; PE-RLHF with it is ``"PE-RLHF+disturbance"``), ``"PVP"`` (neither, with
+    ``loss.objective=proxy_value``); the mixed cases are errors.
 
     The intervention transform takes physics and selector together or not at all; the paper's
     "w/o ensemble" ablation is ``selector.num_members=1``, its physics ablations are
@@ -229,6 +230,12 @@ def method_name(cfg: DictConfig) -> str:
     """
     physics, selector = cfg.physics.enabled, cfg.selector.enabled
     disturbance = bool(cfg.disturbance.enabled)
+    if str(cfg.loss.get("objective", "paper")) == "proxy_value":
+        if disturbance:
+            raise invalid_value("disturbance.enabled", True, "needs loss.objective=paper (HAIM-DRL's disturbance "
+                                "critic is a PERLHFLoss term)")
+        if not physics and not selector:
+            return "PVP"
     if physics and selector:
         return "PE-RLHF+disturbance" if disturbance else "PE-RLHF"
     if not physics and not selector:
@@ -243,7 +250,7 @@ def method_name(cfg: DictConfig) -> str:
 
 def algorithm_name(cfg: DictConfig) -> str:
     """The registry name (:data:`pe_rlhf.algorithms.ALGORITHMS`) of the method ``cfg`` describes, as a run records
-    it: ``pe-rlhf``, ``haco`` or ``haim-drl`` (PE-RLHF with the disturbance critic is a ``pe-rlhf`` run)."""
+    it: ``pe-rlhf``, ``haco``, ``haim-drl`` or ``pvp`` (PE-RLHF with the disturbance critic is a ``pe-rlhf`` run)."""
     return method_name(cfg).removesuffix("+disturbance").lower()
 
 

@@ -45,6 +45,8 @@ BACKENDS = ("single", "multisync", "multiasync", "ray")
 FIT_LOSSES = ("mean", "member")
 REFRESH_DATA = ("warmup", "all")
 INTERVENTION_CRITIC_ACTIONS = ("agent", "behavior")
+# paper: PERLHFLoss (HACO's proxy-Q, as the paper); proxy_value: ProxyValueLoss (PVP's bounded proxy values)
+OBJECTIVES = ("paper", "proxy_value")
 
 
 def rule_value_source(v) -> str | None:
@@ -155,6 +157,9 @@ class CollectorConfig:
     learning_starts: int = knob(100, rule_int(0))
     # random: sample the policy while collecting | deterministic: propose its mode
     exploration: str = knob("random", rule_choice("random", "deterministic"))
+    # loss.objective=proxy_value: sigma of the Gaussian noise added to the deterministic actor's proposal while
+    # collecting (with exploration=random); 0: none (PVP)
+    exploration_noise: float = knob(0.0, rule_number(0, 1))
     backend: str = knob("single", rule_backend)  # single | multisync | multiasync | ray
     num_workers: int = knob(1, rule_int(1))
     # env steps per second held by RealtimePacing (deadline clock); 0 = as fast as possible; mentor.name=human: 10
@@ -196,8 +201,10 @@ def _is_device(v: str) -> bool:
 
 @dataclass
 class LossConfig:
-    """PERLHFLoss arguments (+ tau for the target networks' SoftUpdate)."""
+    """The loss's arguments (+ tau for the target networks' SoftUpdate): PERLHFLoss (``objective=paper``) or
+    ProxyValueLoss (``objective=proxy_value``); each reads its own fields below and the shared ones."""
 
+    objective: str = knob("paper", rule_choice(*OBJECTIVES))  # paper (PERLHFLoss) | proxy_value (ProxyValueLoss)
     gamma: float = knob(0.99, rule_number(0, 1))
     tau: float = knob(0.005, rule_number(0, 1, lo_open=True))
     gap_coef: float = knob(10.0, rule_number(0))  # "CQL temperature"
@@ -224,6 +231,15 @@ class LossConfig:
     # evaluate the critics from their stacked parameters, each state's first-layer product once (same values up
     # to float summation order; false: through the modules)
     fused_critics: bool = knob(True, rule_bool)
+    layer_norm: bool = knob(False, rule_bool)  # a LayerNorm after each hidden layer of the critics (RLPD, BRO)
+    # objective=proxy_value: the label of the executed action (+B) and of the agent's proposal (-B) on takeover rows
+    q_value_bound: float = knob(1.0, _POSITIVE)
+    policy_delay: int = knob(2, rule_int(1))  # objective=proxy_value: an actor step every policy_delay critic steps
+    target_noise: float = knob(0.2, rule_number(0))  # objective=proxy_value: TD3's target smoothing sigma
+    target_noise_clip: float = knob(0.5, rule_number(0))  # ... clipped at this
+    bc_weight: float = knob(0.0, rule_number(0))  # objective=proxy_value: behaviour cloning on takeover rows
+    # objective=proxy_value: leave the rows where a takeover starts out of the TD term (PVP's mask)
+    mask_td_at_takeover_start: bool = knob(False, rule_bool)
 
 
 @dataclass

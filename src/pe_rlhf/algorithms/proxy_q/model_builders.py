@@ -6,22 +6,39 @@
 
 from __future__ import annotations
 
-from pe_rlhf.modules import make_actor, make_qvalue
-from pe_rlhf.objectives import ForeachSoftUpdate, PERLHFLoss
+from pe_rlhf.modules import make_actor, make_deterministic_actor, make_qvalue
+from pe_rlhf.objectives import ForeachSoftUpdate, PERLHFLoss, ProxyValueLoss
 from pe_rlhf.runtime.world import obs_dim
 
 
+def uses_proxy_values(cfg) -> bool:
+    """Whether the run learns with :class:`~pe_rlhf.objectives.ProxyValueLoss` (``loss.objective=proxy_value``)."""
+    return str(cfg.loss.get("objective", "paper")) == "proxy_value"
+
+
 def build_actor(cfg):
-    return make_actor(obs_dim(cfg), hidden=tuple(cfg.loss.hidden))
+    """The deterministic TD3 actor for ``loss.objective=proxy_value``, else the TanhNormal SAC actor."""
+    make = make_deterministic_actor if uses_proxy_values(cfg) else make_actor
+    return make(obs_dim(cfg), hidden=tuple(cfg.loss.hidden))
 
 
-def build_loss(cfg, actor) -> tuple[PERLHFLoss, ForeachSoftUpdate]:
-    """``PERLHFLoss`` of ``cfg.loss``, with HAIM-DRL's disturbance critic when ``disturbance.enabled``."""
+def build_loss(cfg, actor) -> tuple[PERLHFLoss | ProxyValueLoss, ForeachSoftUpdate]:
+    """The loss of ``cfg.loss``: ``ProxyValueLoss`` (``objective=proxy_value``) or ``PERLHFLoss``, the latter with
+    HAIM-DRL's disturbance critic when ``disturbance.enabled``."""
     hidden, n = tuple(cfg.loss.hidden), obs_dim(cfg)
+    layer_norm = bool(cfg.loss.get("layer_norm", False))
+    if uses_proxy_values(cfg):
+        c = cfg.loss
+        loss = ProxyValueLoss(actor, make_qvalue(n, hidden=hidden, layer_norm=layer_norm),
+                              q_value_bound=float(c.q_value_bound), gamma=float(c.gamma),
+                              num_qvalue_nets=int(c.num_qvalue_nets), target_noise=float(c.target_noise),
+                              target_noise_clip=float(c.target_noise_clip), policy_delay=int(c.policy_delay),
+                              bc_weight=float(c.bc_weight), mask_td_at_takeover_start=bool(c.mask_td_at_takeover_start))
+        return loss, ForeachSoftUpdate(loss, tau=float(c.tau))
     target_entropy = cfg.loss.target_entropy
     disturbance = make_qvalue(n, hidden=hidden) if cfg.disturbance.enabled else None
     loss = PERLHFLoss(
-        actor, make_qvalue(n, hidden=hidden), make_qvalue(n, hidden=hidden), disturbance,
+        actor, make_qvalue(n, hidden=hidden, layer_norm=layer_norm), make_qvalue(n, hidden=hidden), disturbance,
         num_qvalue_nets=int(cfg.loss.num_qvalue_nets),
         gamma=float(cfg.loss.gamma), gap_coef=float(cfg.loss.gap_coef),
         gap_margin=None if cfg.loss.gap_margin is None else float(cfg.loss.gap_margin), psi=float(cfg.loss.psi),
@@ -38,4 +55,4 @@ def build_loss(cfg, actor) -> tuple[PERLHFLoss, ForeachSoftUpdate]:
     return loss, ForeachSoftUpdate(loss, tau=float(cfg.loss.tau))
 
 
-__all__ = ["build_actor", "build_loss"]
+__all__ = ["build_actor", "build_loss", "uses_proxy_values"]

@@ -288,7 +288,8 @@ class ProxyQLearner(Learner):
         if self.pending is not None:
             self.pending.restart(int(self.counters.frames))
         rng = capture_rng() if self.resumed_collection is not None else None
-        self.collector = builders.build_collector(self.cfg, self.env, self.updater.policy, remaining,
+        policy = builders.build_collection_policy(self.cfg, self.updater.policy)
+        self.collector = builders.build_collector(self.cfg, self.env, policy, remaining,
                                                   ensemble=self.ensemble, start_frames=int(self.counters.frames))
         if self.resumed_collection is not None:  # continue the checkpoint's episode, not the collector's reset
             restore_collection(self.collector, self.transform, *self.resumed_collection)

@@ -1,0 +1,37 @@
+"""PVP training recipe: bounded proxy values (ProxyValueLoss), the mentor's takeovers executed as they come.
+
+    python recipes/pvp/train.py [profile=cpu|smoke|paper] [group.key=value ...] [--out DIR]
+    python recipes/pvp/train.py --resume DIR      # continue a killed run from its last checkpoint
+    python recipes/pvp/train.py profile=smoke --cfg job   # print the composed config, run nothing
+
+The PE-RLHF recipe (``recipes/pe_rlhf``) with ``physics.enabled=false selector.enabled=false
+loss.objective=proxy_value replay_buffer.takeover_share=0.5`` (``config.yaml`` beside this script):
+:class:`~pe_rlhf.transforms.InterventionTransform` without physics or selector, and
+:class:`~pe_rlhf.objectives.ProxyValueLoss` with a deterministic actor. A bad value prints one line
+``error: ...`` and exits 2; ``PE_RLHF_DEBUG=1`` shows the traceback.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import hydra
+from omegaconf import DictConfig
+
+from pe_rlhf.algorithms.proxy_q import recipe
+
+CONFIG = Path(__file__).with_name("config.yaml")
+
+
+@hydra.main(config_path=".", config_name="config", version_base=None)
+def train(cfg: DictConfig) -> dict:
+    return recipe.hydra_task(cfg)
+
+
+def main(argv: list[str] | None = None) -> dict:
+    """The command line as a function (tests, ``pe-rlhf sweep``): ``main(["profile=smoke", "--out", "runs/x"])``."""
+    return recipe.main(argv, config_path=CONFIG, description=__doc__.splitlines()[0])
+
+
+if __name__ == "__main__":
+    recipe.run_script(train, CONFIG)

@@ -1,0 +1,218 @@
+"""``ProxyValueLoss``: reward-free learning from takeovers with bounded proxy values (PVP), a TorchRL ``LossModule``.
+
+Proxy Value Propagation (Peng et al., NeurIPS 2023) replaces HACO's unbounded gap with two fixed labels and lets
+plain TD learning carry them to the states the mentor never touched. One update reads a batch of transitions
+``(s, a_AV, a_exec, I, I_start, s')`` (the keys :class:`~pe_rlhf.transforms.InterventionTransform` writes) and
+returns:
+
+- ``loss_proxy``: on takeover rows only (``I = 1``), the executed action is labelled ``+B`` and the agent's
+  proposal ``-B``, ``B = q_value_bound``:
+  ``sum_k mean_{I=1} [(Q_k(s, a_exec) - B)^2 + (Q_k(s, a_AV) - (-B))^2]``; 0 on a batch without a takeover.
+  During a PE-RLHF takeover the executed action is the hybrid's (mentor or physics): the loss need not know which.
+- ``loss_td``: zero-reward TD on every row at the executed action, twin critics, TD3's target
+  ``y = gamma * (1 - terminated) * min_k Q'_k(s', clip(pi'(s') + clip(N(0, sigma), -c, c), -1, 1))``,
+  ``sum_k mean (Q_k(s, a_exec) - y)^2``. With ``mask_td_at_takeover_start`` the rows where a takeover starts
+  are left out of it (PVP's mask: that step's value is the proxy label alone).
+- ``loss_actor``: a deterministic actor that maximises the first critic, ``-mean Q_1(s, pi(s))`` (critic
+  parameters detached), plus ``bc_weight * mean_{I=1} ||pi(s) - a_exec||^2`` (PVP4Real's behaviour cloning on
+  takeover rows). The actor's term is computed on every ``policy_delay``-th call (TD3's delay: calls
+  ``policy_delay``, ``2 * policy_delay``, ...); on the calls in between ``loss_actor`` is a constant 0 and the
+  actor is not evaluated. The call count is a buffer, saved
+  with the module's state.
+- diagnostics (detached): ``td_loss``, ``proxy_loss``, ``bc_loss``, ``q_behavior`` (mean ``Q`` at the executed
+  action on takeover rows), ``q_agent`` (at the agent's proposal on takeover rows), ``q_free`` (at the executed
+  action on rows without a takeover), ``td_error`` (mean absolute), ``intervention_rate``; each is 0 where its
+  rows are missing from the batch.
+
+Default keys (``set_keys`` renames): root ``observation`` (through the networks' in_keys) and ``action`` = the
+agent's proposal ``a_AV`` float ``(..., A)``; under ``next``: ``behavior_action`` ``(..., A)``, ``intervention`` and
+``intervention_start`` bool ``(..., 1)``, ``terminated`` bool ``(..., 1)`` and ``observation``. The reward is
+never read. Any batch shape (flattened to one dim); the input tensordict is read, never written.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDict, TensorDictBase, TensorDictParams
+from tensordict.nn import TensorDictModule
+from tensordict.utils import NestedKey
+from torchrl.objectives.common import LossModule
+from torchrl.objectives.utils import _vmap_func
+
+
+class ProxyValueLoss(LossModule):
+    """PVP's bounded proxy values on takeover rows, zero-reward TD3 on every row, a deterministic actor.
+
+    Args:
+        actor_network: a deterministic actor reading ``observation`` and writing ``action`` in [-1, 1]
+            (:func:`pe_rlhf.modules.make_deterministic_actor`); a target copy is kept.
+        qvalue_network: a ``TensorDictModule`` reading ``observation`` and ``action``, writing
+            ``state_action_value``; copied into ``num_qvalue_nets`` critics with target copies.
+
+    Keyword Args:
+        q_value_bound: ``B``, the label of the executed action (``+B``) and of the agent's proposal (``-B``).
+        gamma: the discount of the zero-reward TD term.
+        num_qvalue_nets: critics (TD3's twin: 2); the TD target takes their minimum.
+        target_noise, target_noise_clip: TD3's target smoothing (sigma 0.2 clipped at 0.5).
+        policy_delay: the actor is updated every ``policy_delay``-th call (TD3: 2).
+        bc_weight: weight of behaviour cloning toward the executed action on takeover rows (0: off).
+        mask_td_at_takeover_start: leave takeover-start rows out of the TD term (PVP's mask).
+    """
+
+    @dataclass
+    class _AcceptedKeys:
+        """Keys the loss reads; ``set_keys(action=..., behavior_action=...)`` renames them."""
+
+        action: NestedKey = "action"
+        behavior_action: NestedKey = ("next", "behavior_action")
+        intervention: NestedKey = ("next", "intervention")
+        intervention_start: NestedKey = ("next", "intervention_start")
+        state_action_value: NestedKey = "state_action_value"
+        terminated: NestedKey = "terminated"
+
+    default_keys = _AcceptedKeys
+    tensor_keys: _AcceptedKeys
+    out_keys = ["loss_qvalue", "loss_actor", "td_loss", "proxy_loss", "bc_loss", "q_behavior", "q_agent",
+                "q_free", "td_error", "intervention_rate"]
+    actor_network: TensorDictModule
+    qvalue_network: TensorDictModule
+    actor_network_params: TensorDictParams
+    target_actor_network_params: TensorDictParams
+    qvalue_network_params: TensorDictParams
+    target_qvalue_network_params: TensorDictParams
+
+    def __init__(self, actor_network: TensorDictModule, qvalue_network: TensorDictModule, *,
+                 q_value_bound: float = 1.0, gamma: float = 0.99, num_qvalue_nets: int = 2,
+                 target_noise: float = 0.2, target_noise_clip: float = 0.5, policy_delay: int = 2,
+                 bc_weight: float = 0.0, mask_td_at_takeover_start: bool = False) -> None:
+        super().__init__()
+        for name, value, low in (("q_value_bound", q_value_bound, 0.0), ("target_noise", target_noise, 0.0),
+                                 ("target_noise_clip", target_noise_clip, 0.0), ("bc_weight", bc_weight, 0.0)):
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) \
+                    or value < low or (name == "q_value_bound" and value == 0):
+                raise ValueError(f"ProxyValueLoss {name}={value!r} is invalid: a finite number "
+                                 f"{'> 0' if name == 'q_value_bound' else '>= 0'}")
+        if not (isinstance(gamma, (int, float)) and 0.0 <= gamma <= 1.0):
+            raise ValueError(f"ProxyValueLoss gamma={gamma!r} is invalid: a number in [0, 1]")
+        for name, value in (("num_qvalue_nets", num_qvalue_nets), ("policy_delay", policy_delay)):
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"ProxyValueLoss {name}={value!r} is invalid: an int >= 1")
+        self.convert_to_functional(actor_network, "actor_network", create_target_params=True)
+        self.convert_to_functional(qvalue_network, "qvalue_network", num_qvalue_nets, create_target_params=True)
+        self.q_value_bound, self.gamma, self.num_qvalue_nets = float(q_value_bound), float(gamma), num_qvalue_nets
+        self.target_noise, self.target_noise_clip = float(target_noise), float(target_noise_clip)
+        self.policy_delay, self.bc_weight = policy_delay, float(bc_weight)
+        self.mask_td_at_takeover_start = bool(mask_td_at_takeover_start)
+        self.register_buffer("calls", torch.zeros((), dtype=torch.long))
+        self._vmap_q = _vmap_func(self.qvalue_network, (None, 0))
+        self._in_keys = None
+
+    # -- the TorchRL contract --------------------------------------------------------------------
+    def _forward_value_estimator_keys(self, **kwargs) -> None:
+        self._in_keys = None
+
+    @property
+    def in_keys(self) -> list[NestedKey]:
+        """Every key ``forward`` reads, with the current names."""
+        if self._in_keys is None:
+            keys = self.tensor_keys
+            observation = [k for k in self.actor_network.in_keys]
+            self._in_keys = list(dict.fromkeys([
+                *observation, *[("next", k) for k in observation], keys.action, keys.behavior_action,
+                keys.intervention, keys.intervention_start, ("next", keys.terminated)]))
+        return self._in_keys
+
+    @in_keys.setter
+    def in_keys(self, values) -> None:
+        self._in_keys = values
+
+    def make_value_estimator(self, value_type=None, **hyperparams):
+        """Only the built-in one-step target exists (TD0 with TD3's smoothing); anything else is refused."""
+        from torchrl.objectives.utils import ValueEstimators
+
+        if value_type not in (None, ValueEstimators.TD0):
+            raise NotImplementedError(f"ProxyValueLoss supports only ValueEstimators.TD0 (its built-in zero-reward "
+                                      f"TD3 target), got {value_type}")
+        if "gamma" in hyperparams:
+            self.gamma = float(hyperparams["gamma"])
+        return self
+
+    # -- values --------------------------------------------------------------------------------
+    def _q(self, params, tensordict: TensorDictBase, action: torch.Tensor) -> torch.Tensor:
+        """``(copies, rows)`` values of the critics under ``params`` at ``action``."""
+        td = tensordict.select(*self.qvalue_network.in_keys, strict=False).exclude(self.tensor_keys.action)
+        td.set(self.tensor_keys.action, action)
+        return self._vmap_q(td, params).get(self.tensor_keys.state_action_value).squeeze(-1)
+
+    def _act(self, params, tensordict: TensorDictBase) -> torch.Tensor:
+        """The deterministic actor's action under ``params`` (the input is not written)."""
+        td = tensordict.select(*self.actor_network.in_keys, strict=False)
+        with params.to_module(self.actor_network):
+            return self.actor_network(td).get(self.tensor_keys.action)
+
+    def td_target(self, tensordict: TensorDictBase) -> torch.Tensor:
+        """``(rows,)``: ``gamma * (1 - terminated) * min_k Q'_k(s', smoothed pi'(s'))``, zero reward, no grad."""
+        next_td = tensordict.get("next")
+        with torch.no_grad():
+            next_action = self._act(self.target_actor_network_params, next_td)
+            noise = (torch.randn_like(next_action) * self.target_noise).clamp(-self.target_noise_clip,
+                                                                              self.target_noise_clip)
+            next_action = (next_action + noise).clamp(-1.0, 1.0)
+            next_q = self._q(self.target_qvalue_network_params, next_td, next_action).min(0)[0]
+            not_terminal = 1.0 - next_td.get(self.tensor_keys.terminated).reshape(-1).float()
+            return self.gamma * not_terminal * next_q
+
+    # -- the loss ------------------------------------------------------------------------------
+    def forward(self, tensordict: TensorDictBase) -> TensorDict:
+        keys = self.tensor_keys
+        if tensordict.batch_dims != 1:  # takeover rows are indexed along one batch dim
+            tensordict = tensordict.reshape(-1)
+        takeover = tensordict.get(keys.intervention).reshape(-1).bool()
+        behavior, agent = tensordict.get(keys.behavior_action), tensordict.get(keys.action)
+        rows = tensordict.shape[0]
+        # one critic pass: the executed action on every row, then the agent's proposal on the takeover rows
+        state = tensordict.select(*self.qvalue_network.in_keys, strict=False)
+        both = torch.cat([state, state[takeover]], 0)
+        q_all = self._q(self.qvalue_network_params, both, torch.cat([behavior, agent[takeover]], 0))
+        q_exec, q_agent = q_all[:, :rows], q_all[:, rows:]
+
+        target = self.td_target(tensordict)
+        td_rows = torch.ones_like(takeover)
+        if self.mask_td_at_takeover_start:
+            td_rows = ~tensordict.get(keys.intervention_start).reshape(-1).bool()
+        td_error = (q_exec - target)[:, td_rows]
+        loss_td = td_error.pow(2).mean(-1).sum(0) if td_rows.any() else q_all.new_zeros(())
+        zero = q_all.new_zeros(())
+        if takeover.any():
+            bound = self.q_value_bound
+            loss_proxy = ((q_exec[:, takeover] - bound).pow(2).mean(-1)
+                          + (q_agent + bound).pow(2).mean(-1)).sum(0)
+        else:
+            loss_proxy = zero
+
+        loss_actor, loss_bc = zero, zero
+        if (int(self.calls) + 1) % self.policy_delay == 0:  # after every policy_delay-th critic step
+            action = self._act(self.actor_network_params, tensordict)
+            q_first = self._q(self.qvalue_network_params.detach()[:1], tensordict, action)[0]
+            loss_actor = -q_first.mean()
+            if self.bc_weight > 0 and takeover.any():
+                loss_bc = (action[takeover] - behavior[takeover]).pow(2).sum(-1).mean()
+                loss_actor = loss_actor + self.bc_weight * loss_bc
+        self.calls += 1
+
+        detached = q_exec.detach().mean(0)
+        return TensorDict({
+            "loss_qvalue": loss_td + loss_proxy,
+            "loss_actor": loss_actor,
+            "td_loss": loss_td.detach(),
+            "proxy_loss": loss_proxy.detach(),
+            "bc_loss": loss_bc.detach(),
+            "q_behavior": detached[takeover].mean() if takeover.any() else zero,
+            "q_agent": q_agent.detach().mean() if takeover.any() else zero,
+            "q_free": detached[~takeover].mean() if (~takeover).any() else zero,
+            "td_error": td_error.detach().abs().mean() if td_error.numel() else zero,
+            "intervention_rate": takeover.float().mean(),
+        }, batch_size=[])
