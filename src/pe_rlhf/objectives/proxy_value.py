@@ -141,17 +141,24 @@ class ProxyValueLoss(LossModule):
         return self
 
     # -- values --------------------------------------------------------------------------------
+    @property
+    def policy_action_key(self) -> NestedKey:
+        """The key the actor writes and the critics read their action from (the networks' own, ``action``); the
+        stored proposal may live under another name (``tensor_keys.action``)."""
+        return self.actor_network.out_keys[0]
+
     def _q(self, params, tensordict: TensorDictBase, action: torch.Tensor) -> torch.Tensor:
         """``(copies, rows)`` values of the critics under ``params`` at ``action``."""
-        td = tensordict.select(*self.qvalue_network.in_keys, strict=False).exclude(self.tensor_keys.action)
-        td.set(self.tensor_keys.action, action)
+        state_keys = [k for k in self.qvalue_network.in_keys if k != self.policy_action_key]
+        td = tensordict.select(*state_keys, strict=False)
+        td.set(self.policy_action_key, action)
         return self._vmap_q(td, params).get(self.tensor_keys.state_action_value).squeeze(-1)
 
     def _act(self, params, tensordict: TensorDictBase) -> torch.Tensor:
         """The deterministic actor's action under ``params`` (the input is not written)."""
         td = tensordict.select(*self.actor_network.in_keys, strict=False)
         with params.to_module(self.actor_network):
-            return self.actor_network(td).get(self.tensor_keys.action)
+            return self.actor_network(td).get(self.policy_action_key)
 
     def td_target(self, tensordict: TensorDictBase) -> torch.Tensor:
         """``(rows,)``: ``gamma * (1 - terminated) * min_k Q'_k(s', smoothed pi'(s'))``, zero reward, no grad."""
@@ -174,7 +181,8 @@ class ProxyValueLoss(LossModule):
         behavior, agent = tensordict.get(keys.behavior_action), tensordict.get(keys.action)
         rows = tensordict.shape[0]
         # one critic pass: the executed action on every row, then the agent's proposal on the takeover rows
-        state = tensordict.select(*self.qvalue_network.in_keys, strict=False)
+        state = tensordict.select(*[k for k in self.qvalue_network.in_keys if k != self.policy_action_key],
+                                  strict=False)
         both = torch.cat([state, state[takeover]], 0)
         q_all = self._q(self.qvalue_network_params, both, torch.cat([behavior, agent[takeover]], 0))
         q_exec, q_agent = q_all[:, :rows], q_all[:, rows:]
