@@ -129,6 +129,22 @@ def test_the_mask_leaves_takeover_start_rows_out_of_the_td_term():
     torch.testing.assert_close(masked["proxy_loss"], plain["proxy_loss"])
 
 
+def test_without_physics_labels_rows_physics_executed_get_td_only():
+    td = batch()  # takeover rows 0, 1, 5; physics executed on row 1
+    selected = td["next", "intervention"].clone()
+    selected[1] = False
+    td.set(("next", "mentor_selected"), selected)
+    mentor_only = td.clone()
+    mentor_only.set(("next", "intervention"), selected.clone())  # as if row 1 had no takeover at all
+    out = hand_built_loss(physics_labels=False, policy_delay=1, bc_weight=1.0)(td)
+    reference = hand_built_loss(policy_delay=1, bc_weight=1.0)(mentor_only)
+    for key in ("td_loss", "proxy_loss", "bc_loss"):
+        torch.testing.assert_close(out[key], reference[key])
+    assert ("next", "mentor_selected") in hand_built_loss(physics_labels=False).in_keys
+    labelled_all = hand_built_loss(policy_delay=1, bc_weight=1.0)(td)
+    assert labelled_all["proxy_loss"] != out["proxy_loss"]
+
+
 def test_target_noise_is_clipped_and_the_target_action_stays_in_bounds():
     loss = hand_built_loss(target_noise=10.0, target_noise_clip=0.3)
     td = batch()

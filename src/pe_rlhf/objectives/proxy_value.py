@@ -9,6 +9,9 @@ returns:
   proposal ``-B``, ``B = q_value_bound``:
   ``sum_k mean_{I=1} [(Q_k(s, a_exec) - B)^2 + (Q_k(s, a_AV) - (-B))^2]``; 0 on a batch without a takeover.
   During a PE-RLHF takeover the executed action is the hybrid's (mentor or physics): the loss need not know which.
+  With ``physics_labels=False`` it does: takeover rows where physics was executed (``mentor_selected`` false) get
+  no label and no behaviour cloning, only TD (physics keeps the executed action safe, but its braking is not
+  what the agent should be taught to prefer).
 - ``loss_td``: zero-reward TD on every row at the executed action, twin critics, TD3's target
   ``y = gamma * (1 - terminated) * min_k Q'_k(s', clip(pi'(s') + clip(N(0, sigma), -c, c), -1, 1))``,
   ``sum_k mean (Q_k(s, a_exec) - y)^2``. With ``mask_td_at_takeover_start`` the rows where a takeover starts
@@ -26,8 +29,8 @@ returns:
 
 Default keys (``set_keys`` renames): root ``observation`` (through the networks' in_keys) and ``action`` = the
 agent's proposal ``a_AV`` float ``(..., A)``; under ``next``: ``behavior_action`` ``(..., A)``, ``intervention`` and
-``intervention_start`` bool ``(..., 1)``, ``terminated`` bool ``(..., 1)`` and ``observation``. The reward is
-never read. Any batch shape (flattened to one dim); the input tensordict is read, never written.
+``intervention_start`` bool ``(..., 1)``, ``terminated`` bool ``(..., 1)`` and ``observation``; with
+``physics_labels=False`` also ``mentor_selected`` bool ``(..., 1)``. The reward is never read. Any batch shape (flattened to one dim); the input tensordict is read, never written.
 """
 
 from __future__ import annotations
@@ -60,6 +63,7 @@ class ProxyValueLoss(LossModule):
         policy_delay: the actor is updated every ``policy_delay``-th call (TD3: 2).
         bc_weight: weight of behaviour cloning toward the executed action on takeover rows (0: off).
         mask_td_at_takeover_start: leave takeover-start rows out of the TD term (PVP's mask).
+        physics_labels: False: takeover rows whose executed action was physics' get TD only (module docstring).
     """
 
     @dataclass
@@ -70,6 +74,7 @@ class ProxyValueLoss(LossModule):
         behavior_action: NestedKey = ("next", "behavior_action")
         intervention: NestedKey = ("next", "intervention")
         intervention_start: NestedKey = ("next", "intervention_start")
+        mentor_selected: NestedKey = ("next", "mentor_selected")
         state_action_value: NestedKey = "state_action_value"
         terminated: NestedKey = "terminated"
 
@@ -87,7 +92,8 @@ class ProxyValueLoss(LossModule):
     def __init__(self, actor_network: TensorDictModule, qvalue_network: TensorDictModule, *,
                  q_value_bound: float = 1.0, gamma: float = 0.99, num_qvalue_nets: int = 2,
                  target_noise: float = 0.2, target_noise_clip: float = 0.5, policy_delay: int = 2,
-                 bc_weight: float = 0.0, mask_td_at_takeover_start: bool = False) -> None:
+                 bc_weight: float = 0.0, mask_td_at_takeover_start: bool = False,
+                 physics_labels: bool = True) -> None:
         super().__init__()
         for name, value, low in (("q_value_bound", q_value_bound, 0.0), ("target_noise", target_noise, 0.0),
                                  ("target_noise_clip", target_noise_clip, 0.0), ("bc_weight", bc_weight, 0.0)):
@@ -106,6 +112,7 @@ class ProxyValueLoss(LossModule):
         self.target_noise, self.target_noise_clip = float(target_noise), float(target_noise_clip)
         self.policy_delay, self.bc_weight = policy_delay, float(bc_weight)
         self.mask_td_at_takeover_start = bool(mask_td_at_takeover_start)
+        self.physics_labels = bool(physics_labels)
         self.register_buffer("calls", torch.zeros((), dtype=torch.long))
         self._vmap_q = _vmap_func(self.qvalue_network, (None, 0))
         self._in_keys = None
@@ -122,7 +129,8 @@ class ProxyValueLoss(LossModule):
             observation = [k for k in self.actor_network.in_keys]
             self._in_keys = list(dict.fromkeys([
                 *observation, *[("next", k) for k in observation], keys.action, keys.behavior_action,
-                keys.intervention, keys.intervention_start, ("next", keys.terminated)]))
+                keys.intervention, keys.intervention_start, ("next", keys.terminated),
+                *([] if self.physics_labels else [keys.mentor_selected])]))
         return self._in_keys
 
     @in_keys.setter
@@ -194,10 +202,13 @@ class ProxyValueLoss(LossModule):
         td_error = (q_exec - target)[:, td_rows]
         loss_td = td_error.pow(2).mean(-1).sum(0) if td_rows.any() else q_all.new_zeros(())
         zero = q_all.new_zeros(())
-        if takeover.any():
-            bound = self.q_value_bound
-            loss_proxy = ((q_exec[:, takeover] - bound).pow(2).mean(-1)
-                          + (q_agent + bound).pow(2).mean(-1)).sum(0)
+        labelled = takeover  # the takeover rows that carry the +B / -B labels (and behaviour cloning)
+        if not self.physics_labels:
+            labelled = takeover & tensordict.get(keys.mentor_selected).reshape(-1).bool()
+        if labelled.any():
+            bound, among = self.q_value_bound, labelled[takeover]  # q_agent holds the takeover rows only
+            loss_proxy = ((q_exec[:, labelled] - bound).pow(2).mean(-1)
+                          + (q_agent[:, among] + bound).pow(2).mean(-1)).sum(0)
         else:
             loss_proxy = zero
 
@@ -206,8 +217,8 @@ class ProxyValueLoss(LossModule):
             action = self._act(self.actor_network_params, tensordict)
             q_first = self._q(self.qvalue_network_params.detach()[:1], tensordict, action)[0]
             loss_actor = -q_first.mean()
-            if self.bc_weight > 0 and takeover.any():
-                loss_bc = (action[takeover] - behavior[takeover]).pow(2).sum(-1).mean()
+            if self.bc_weight > 0 and labelled.any():
+                loss_bc = (action[labelled] - behavior[labelled]).pow(2).sum(-1).mean()
                 loss_actor = loss_actor + self.bc_weight * loss_bc
         self.calls += 1
 

@@ -240,6 +240,8 @@ class LossConfig:
     bc_weight: float = knob(0.0, rule_number(0))  # objective=proxy_value: behaviour cloning on takeover rows
     # objective=proxy_value: leave the rows where a takeover starts out of the TD term (PVP's mask)
     mask_td_at_takeover_start: bool = knob(False, rule_bool)
+    # objective=proxy_value: false: takeover rows where physics was executed get TD only (no labels, no cloning)
+    physics_labels: bool = knob(True, rule_bool)
 
 
 @dataclass
