@@ -48,6 +48,11 @@ METRICS: dict[str, Metric] = {
                                       logged_metrics("train/safety_violations_total", "safety_violations")),
     "takeover_data_usage": Metric("takeover data usage", ".2f", logged_metrics("train/takeover_data_usage")),
     "value_takeover_rate": Metric("value-takeover rate", ".2f", logged_metrics("train/value_takeover_rate")),
+    # where the final evaluation's episodes end (rates over its episodes; success is the rest)
+    "crash_vehicle_rate": Metric("crash vehicle", ".2f", _test("crash_vehicle_rate")),
+    "crash_object_rate": Metric("crash object", ".2f", _test("crash_object_rate")),
+    "out_of_road_rate": Metric("out of road", ".2f", _test("out_of_road_rate")),
+    "timeout_rate": Metric("timeout", ".2f", _test("timeout_rate")),
     "train_wall_minutes": Metric("train wall min", ".1f",
                                  lambda final, last: float(last["wall_time"]) / 60 if "wall_time" in last else NAN),
 }
