@@ -53,6 +53,8 @@ def test_the_summary_groups_by_mentor_and_method(tmp_path):
     assert pe["seeds"] == 3 and pe["success"][0] == pytest.approx(0.7) and pe["test_safety"][0] == pytest.approx(0.9)
     assert pe["success"][1] < 0.7 < pe["success"][2]
     assert summary["professional"]["haco"]["seeds"] == 1  # the running cell is not counted
+    assert pe["per_seed"] == {"seed": [0, 1, 2], "success": [0.6, 0.7, 0.8],
+                              "test_safety": pytest.approx([0.9, 0.9, 0.9])}
     idm = summary["professional"]["idm_mobil"]
     assert idm["train_violations"] is None and idm["success"] == pytest.approx([0.42] * 3)
     assert summary["adversarial"]["idm_mobil"] == idm and "-" not in summary  # beside every claim

@@ -2,7 +2,8 @@
 
 ``claims_summary(cells_csv)`` reads a sweep folder's ``cells.csv`` (:mod:`pe_rlhf.apps.sweeps.summary`) and returns
 ``{claim: {method: {"success": [mean, lo, hi], "test_safety": [...], "train_violations": [...],
-"takeover_usage": [...], "seeds": N}}}``, a claim being the mentor's label (``professional``,
+"takeover_usage": [...], "seeds": N, "per_seed": {"seed": [...], "success": [...], "test_safety": [...]}}}}``,
+a claim being the mentor's label (``professional``,
 ``adversarial``) and a method the sweep's name with ``-`` as ``_`` (``pe_rlhf``, ``haco``, ``idm_mobil``).
 An evaluation-only method (IDM-MOBIL: mentor ``-`` in the cells) joins every claim. ``test_safety`` is
 ``1 - test safety violation rate``. The interval is :func:`pe_rlhf.evaluation.statistics.bootstrap_interval`
@@ -104,8 +105,22 @@ def claims_summary(cells_csv: str | Path | list[str | Path]) -> dict:
                 values = [1.0 - v for v in values]
             entry[name] = bootstrap_interval(values)
         entry["seeds"] = len(members)
+        entry["per_seed"] = per_seed(members)
         out.setdefault(mentor, {})[method] = entry
     return out
+
+
+def per_seed(members: list[dict]) -> dict[str, list]:
+    """``{"seed": [...], "success": [...], "test_safety": [...]}`` of one method's finished cells, in seed order (NaN
+    where a cell has no value)."""
+    ordered = sorted(members, key=lambda r: int(float(r["seed"])))
+
+    def column(name: str, complement: bool) -> list[float]:
+        values = [float(r[name]) if r.get(name) not in MISSING else math.nan for r in ordered]
+        return [1.0 - v if complement else v for v in values]
+
+    return {"seed": [int(float(r["seed"])) for r in ordered], "success": column("success_rate", False),
+            "test_safety": column("safety_violation", True)}
 
 
 def markdown_table(summary: dict) -> str:
@@ -133,5 +148,5 @@ def write_claims(cells_csv: str | Path | list[str | Path], out_dir: str | Path) 
     return summary
 
 
-__all__ = ["add_violations_after", "bootstrap_interval", "claims_summary", "markdown_table", "read_cells",
+__all__ = ["add_violations_after", "bootstrap_interval", "claims_summary", "markdown_table", "per_seed", "read_cells",
            "violations_after", "write_claims"]
