@@ -1,4 +1,4 @@
-"""Demonstrations to and from Minari, Farama's offline-RL dataset format (``pip install "minari[hdf5]"``).
+"""Demonstrations to and from Minari, Farama's offline-RL dataset format (``pip install "pe-rlhf[minari]"``).
 
 :func:`export_minari` writes a dataset directory of :mod:`pe_rlhf.mentors.recording` as a Minari dataset
 (HDF5) that ``minari.load_dataset`` reads; :func:`import_minari` appends a Minari dataset's episodes to a
@@ -74,7 +74,7 @@ def _minari():
     try:
         import minari
     except ImportError as err:
-        raise ImportError(f"Minari export needs the minari package ({err}): pip install 'minari[hdf5]'") from err
+        raise ImportError(f"Minari export needs the minari package ({err}): pip install 'pe-rlhf[minari]'") from err
     return minari
 
 
