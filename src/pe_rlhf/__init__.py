@@ -40,8 +40,12 @@ MAX_EPISODE_STEPS = 1000
 
 
 def register_env() -> None:
-    """Register :data:`ENV_ID` with gymnasium (idempotent; ``import pe_rlhf`` calls it)."""
-    from gymnasium.envs.registration import register, registry
+    """Register :data:`ENV_ID` with gymnasium (idempotent; ``import pe_rlhf`` calls it). Without gymnasium on the
+    path (``python -S``, which reads only the version) there is nothing to register with."""
+    try:
+        from gymnasium.envs.registration import register, registry
+    except ImportError:
+        return
 
     if ENV_ID not in registry:
         register(id=ENV_ID, entry_point="pe_rlhf.envs.driving_env:DrivingEnv", max_episode_steps=MAX_EPISODE_STEPS)

@@ -84,9 +84,9 @@ class InterventionWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
             core.mentor.reseed(seed)
         if hasattr(core.warmup_driver, "reseed"):
             core.warmup_driver.reseed(seed)
-        if hasattr(core.selector, "load_streak_state"):
-            core.selector.load_streak_state(None)
-        core.load_state_dict({})  # no takeover in progress, no previous choice
+        if hasattr(core.physics, "reset"):
+            core.physics.reset()  # no lane plan carried over
+        core.load_state_dict({})  # no takeover in progress, no previous choice, the selector's veto count afresh
 
     def step(self, action):
         if self._observation is None:

@@ -2,11 +2,10 @@
 
 from __future__ import annotations
 
+from pe_rlhf import ENV_ID, MAX_EPISODE_STEPS, register_env
 from pe_rlhf.envs.action import action_to_controls, controls_to_action
 from pe_rlhf.envs.config import DrivingConfig
 from pe_rlhf.envs.splits import TEST_SEEDS, TRAIN_SEEDS, parse_seeds, scene_seeds
-
-from pe_rlhf import ENV_ID, MAX_EPISODE_STEPS, register_env
 
 
 def register() -> None:
