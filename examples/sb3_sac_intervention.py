@@ -3,7 +3,7 @@
 The mentor (energy pumping far from upright, PD near it; torques in N m) takes over near the top
 (``cos(theta) > UPRIGHT``) whenever the agent's torque differs from its own by more than ``TOLERANCE``.
 The wrapper executes the mentor's torque then and says so in ``info`` (``is_intervention``,
-``teleop_action``); ``InterventionSAC`` stores that executed torque in its replay buffer instead of its own
+``teleop_action``); :class:`pe_rlhf.sb3.InterventionSAC` stores that executed torque in its replay buffer instead of its own
 proposal (the simulator moved by it: ``(s, a_exec, r, s')`` is the true transition, as HIL-SERL does). SAC
 learns from the env reward; as the agent learns to balance, the takeovers fade.
 Run ``python examples/sb3_sac_intervention.py`` (5000 steps): the trained agent, alone, swings the
@@ -20,9 +20,9 @@ import math
 import gymnasium as gym
 import numpy as np
 import torch
-from stable_baselines3 import SAC
 
 from pe_rlhf.mentors import Mentor, MentorDecision
+from pe_rlhf.sb3 import InterventionSAC
 from pe_rlhf.wrappers import InterventionWrapper
 
 TOLERANCE = 1.0  # [N m], of Pendulum's 2
@@ -50,17 +50,6 @@ class SwingUpMentor(Mentor):
         own = self.act(env)
         near_top = math.cos(env.state[0]) > UPRIGHT
         return MentorDecision(bool(near_top and np.abs(agent_action - own).max() > TOLERANCE), own)
-
-
-class InterventionSAC(SAC):
-    """SAC that stores the executed action of a takeover (``info["teleop_action"]``) as the transition's action."""
-
-    def _store_transition(self, replay_buffer, buffer_action, new_obs, reward, dones, infos):
-        buffer_action = buffer_action.copy()
-        for i, info in enumerate(infos):
-            if info.get("is_intervention"):
-                buffer_action[i] = self.policy.scale_action(info["teleop_action"])  # into SAC's [-1, 1]
-        super()._store_transition(replay_buffer, buffer_action, new_obs, reward, dones, infos)
 
 
 def train(total_steps: int = 5000, seed: int = 0, verbose: int = 0):

@@ -110,3 +110,19 @@ def test_a_checkpoint_write_waits_for_the_lock(tmp_path):
     writer.join(timeout=30)
     assert not writer.is_alive() and find_checkpoint(directory) is not None
     assert FileLock(directory / ".lock").acquire(blocking=False)  # the writer released it
+
+
+def test_the_object_not_the_thread_holds_it_and_the_file_stays(tmp_path):
+    """A lock taken in one thread is held by the object in every thread (a writer thread may release it); the
+    lock file is never deleted, so a later holder locks the same file."""
+    import threading
+
+    path = tmp_path / ".lock"
+    lock = FileLock(path)
+    assert lock.acquire(blocking=False)
+    seen = []
+    other = threading.Thread(target=lambda: (seen.append(lock.locked), lock.release()))
+    other.start()
+    other.join(timeout=10)
+    assert seen == [True] and not lock.locked
+    assert path.exists() and FileLock(path).acquire(blocking=False)

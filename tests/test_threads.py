@@ -22,35 +22,40 @@ class FakeClock:
         return self.cpu
 
 
-def _write_stat(path, busy, idle):
-    # user nice system idle iowait irq softirq steal: busy jiffies all in "user", idle in "idle"
-    path.write_text(f"cpu  {busy} 0 0 {idle} 0 0 0 0 0 0\ncpu0 0 0 0 0 0 0 0 0 0 0\n")
-
-
-def test_free_cores_subtracts_what_other_processes_use(tmp_path, monkeypatch):
-    stat, clock = tmp_path / "stat", FakeClock()
+def test_free_cores_subtracts_what_other_processes_use(monkeypatch):
+    clock, busy = FakeClock(), {"seconds": 0.0}
     monkeypatch.setattr(threads, "time", clock)
-    _write_stat(stat, 0, 0)
-    free = threads.FreeCores(limit=4, stat=stat)
-    free.cores, free.hz = 4, 100
-    # 1 s: all 4 cores busy (400 jiffies), 1 core-second of it ours: 3 cores taken by others -> 1 thread
-    clock.wall, clock.cpu = 1.0, 1.0
-    _write_stat(stat, 400, 0)
+    free = threads.FreeCores(limit=4, busy=lambda: busy["seconds"])
+    free.cores = 4
+    # 1 s: all 4 cores busy (4 core-seconds), 1 of them ours: 3 cores taken by others -> 1 thread
+    clock.wall, clock.cpu, busy["seconds"] = 1.0, 1.0, 4.0
     assert free() == 1
     # next second: only our own core busy -> all 4 free again (capped at the limit)
-    clock.wall, clock.cpu = 2.0, 2.0
-    _write_stat(stat, 500, 300)
+    clock.wall, clock.cpu, busy["seconds"] = 2.0, 2.0, 5.0
     assert free() == 4
     # next second: one other process busy besides us -> 3
-    clock.wall, clock.cpu = 3.0, 3.0
-    _write_stat(stat, 700, 500)
+    clock.wall, clock.cpu, busy["seconds"] = 3.0, 3.0, 7.0
     assert free() == 3
-    # a call within min_interval keeps the last answer; an unreadable stat gives the limit
+    # a call within min_interval keeps the last answer; an unreadable busy time gives the limit
     clock.wall = 3.1
     assert free() == 3
-    stat.unlink()
+    busy["seconds"] = None
     clock.wall = 5.0
     assert free() == 4
+
+
+def test_busy_seconds_counts_every_core_but_idle_time():
+    """psutil's counters: the busy time grows by at most (cores x wall time) while this process spins."""
+    import time
+
+    import psutil
+
+    before, start = threads.busy_seconds(), time.monotonic()
+    sum(i * i for i in range(300_000))
+    after, wall = threads.busy_seconds(), time.monotonic() - start
+    times = psutil.cpu_times()
+    assert before is not None and after is not None and 0.0 <= after - before <= (psutil.cpu_count() + 1) * wall + 0.1
+    assert after < sum(getattr(times, f) for f in times._fields)  # idle time is not busy
 
 
 def test_free_cores_on_this_machine_is_a_valid_count():

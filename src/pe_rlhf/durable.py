@@ -12,6 +12,11 @@ One place for what checkpoints, human-demonstration recordings, the crash-safe C
 Windows: files are opened in binary mode (``O_BINARY``; without it, ``os.write`` translates
 newlines); a file's fsync needs a writable handle, so it is reopened read-write; directories cannot
 be opened there, and NTFS journals renames itself, so a directory fsync is a no-op.
+
+Why written here rather than taken from a library: the one package for it, ``atomicwrites``, was archived by its
+author (last release 1.4.1, July 2022), and it offers no torn-free
+``O_APPEND`` journal line as the crash-safe CSV and the recorder's manifest need. The whole of it is the ~60
+lines below, each exercised by ``tests/test_durable.py`` and ``tests/reliability/``.
 """
 
 from __future__ import annotations

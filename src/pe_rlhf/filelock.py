@@ -1,53 +1,25 @@
-"""``FileLock``: an exclusive advisory lock on a file, on POSIX (``fcntl.flock``) and Windows (``msvcrt.locking``).
+"""``FileLock``: an exclusive advisory lock on a file, held by one object: a thin layer over py-filelock.
 
-Advisory: it keeps out other ``FileLock`` holders of the same path (in this or another process), not
-readers or writers that do not ask for it. The lock belongs to the open file, so two ``FileLock``
-objects on one path contend even within one process, and the OS releases it when the holder's file
-is closed or its process dies (a killed recorder or checkpoint writer leaves no stale lock). The lock
-file is created if missing and never deleted (deleting it would let a second holder lock a new file).
-On Windows the lock covers the file's first byte (``msvcrt.locking`` locks byte ranges; the range
-may lie beyond the end of the empty file).
+py-filelock (the ``filelock`` package, a dependency of torch) does the locking: ``fcntl.flock`` on POSIX,
+``msvcrt.locking`` on Windows. This module keeps the project's one meaning of a lock on top of it:
+
+- advisory: it keeps out other ``FileLock`` holders of the same path (in this or another process), not readers or
+  writers that do not ask for it;
+- the lock belongs to the object: two ``FileLock`` objects on one path contend even within one process or one
+  thread, and acquiring a lock the object already holds is an error, not a nested hold (py-filelock counts nested
+  holds; a second writer in the same process must wait instead);
+- the OS releases it when the holder's file is closed or its process dies: a killed recorder or checkpoint writer
+  leaves no stale lock (py-filelock's fallback to a lock file whose mere existence is the lock, which a dead
+  process would leave behind, is turned off);
+- the lock file is created if missing and never deleted (deleting it would let a second holder lock a new file).
 """
 
 from __future__ import annotations
 
 import os
-import time
 from pathlib import Path
 
-if os.name == "nt":
-    import msvcrt
-
-    def _try_lock(fd: int) -> bool:
-        os.lseek(fd, 0, os.SEEK_SET)  # msvcrt locks from the current position
-        try:
-            msvcrt.locking(fd, msvcrt.LK_NBLCK, 1)
-        except OSError:
-            return False
-        return True
-
-    def _unlock(fd: int) -> None:
-        os.lseek(fd, 0, os.SEEK_SET)
-        msvcrt.locking(fd, msvcrt.LK_UNLCK, 1)
-
-    def _lock(fd: int) -> None:
-        while not _try_lock(fd):  # LK_LOCK gives up after 10 s; a checkpoint write may take longer
-            time.sleep(0.05)
-else:
-    import fcntl
-
-    def _try_lock(fd: int) -> bool:
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            return False
-        return True
-
-    def _unlock(fd: int) -> None:
-        fcntl.flock(fd, fcntl.LOCK_UN)
-
-    def _lock(fd: int) -> None:
-        fcntl.flock(fd, fcntl.LOCK_EX)
+import filelock
 
 
 class FileLock:
@@ -60,39 +32,29 @@ class FileLock:
 
     def __init__(self, path: str | os.PathLike):
         self.path = Path(path)
-        self._fd: int | None = None
+        # thread_local=False: the object, not the thread, holds it (a writer thread may release what it took)
+        self._lock = filelock.FileLock(self.path, thread_local=False, is_singleton=False, fallback_to_soft=False,
+                                       preserve_lock_file=True)
 
     @property
     def locked(self) -> bool:
         """Whether this object holds the lock."""
-        return self._fd is not None
+        return self._lock.is_locked
 
     def acquire(self, blocking: bool = True) -> bool:
         """Take the lock (creating the file); True once held, False if ``blocking=False`` and it is taken."""
-        if self._fd is not None:
+        if self._lock.is_locked:
             raise RuntimeError(f"FileLock({str(self.path)!r}) is already held by this object")
-        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
         try:
-            if blocking:
-                _lock(fd)
-            elif not _try_lock(fd):
-                os.close(fd)
-                return False
-        except BaseException:
-            os.close(fd)
-            raise
-        self._fd = fd
+            self._lock.acquire(blocking=blocking)
+        except filelock.Timeout:
+            return False
         return True
 
     def release(self) -> None:
         """Give the lock up (a no-op when not held)."""
-        fd, self._fd = self._fd, None
-        if fd is None:
-            return
-        try:
-            _unlock(fd)
-        finally:
-            os.close(fd)
+        if self._lock.is_locked:
+            self._lock.release(force=True)
 
     def __enter__(self) -> FileLock:
         self.acquire()

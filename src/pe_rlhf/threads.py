@@ -1,8 +1,9 @@
 """Intra-op thread control that degrades gracefully on a shared machine.
 
 - :func:`torch_threads`: run a block with ``n`` intra-op threads (acting runs on one).
-- :class:`FreeCores`: how many cores other processes leave free, from ``/proc/stat`` (Linux), so the
-  updates take their share of a busy machine instead of fighting for it.
+- :class:`FreeCores`: how many cores other processes leave free, from every core's busy time (psutil's
+  ``cpu_times``, on any OS) less this process's own, so the updates take their share of a busy machine instead
+  of fighting for it.
 
 Why the count must follow the load (a batch-256 MLP update, 2 cores, ``docs/experiments/speed.md``): with
 both cores busy with other jobs, 2 threads took 582 ms an update under GNU OpenMP's default spin-waiting
@@ -22,12 +23,10 @@ from __future__ import annotations
 import contextlib
 import os
 import time
-from pathlib import Path
+from collections.abc import Callable
 
+import psutil
 import torch
-
-PROC_STAT = Path("/proc/stat")
-
 
 @contextlib.contextmanager
 def torch_threads(n: int):
@@ -45,17 +44,25 @@ def torch_threads(n: int):
         torch.set_num_threads(previous)
 
 
-def _cpu_jiffies(stat: Path) -> tuple[int, int] | None:
-    """``(busy, total)`` jiffies of all cores from the ``cpu`` line of ``/proc/stat``; None if unreadable."""
+def busy_seconds() -> float | None:
+    """Core-seconds every process has kept the cores busy since boot (all but idle and I/O wait), from psutil's
+    ``cpu_times``; None where the OS will not say (a restricted ``/proc``)."""
     try:
-        fields = stat.read_text().split("\n", 1)[0].split()
-    except OSError:
+        t = psutil.cpu_times()
+    except (OSError, psutil.Error):
         return None
-    if not fields or fields[0] != "cpu" or len(fields) < 5:
-        return None
-    values = [int(v) for v in fields[1:9]]  # user nice system idle iowait irq softirq steal
-    idle = values[3] + (values[4] if len(values) > 4 else 0)
-    return sum(values) - idle, sum(values)
+    idle = t.idle + getattr(t, "iowait", 0.0)
+    # guest times are already counted in user/nice (Linux), as /proc/stat's sum would double them
+    total = sum(getattr(t, f) for f in t._fields if f not in ("guest", "guest_nice"))
+    return total - idle
+
+
+def _affinity_cores() -> int:
+    """The cores this process may run on (its CPU affinity where the OS has one)."""
+    try:
+        return len(psutil.Process().cpu_affinity())
+    except (AttributeError, OSError, psutil.Error):  # macOS has no affinity
+        return os.cpu_count() or 1
 
 
 class FreeCores:
@@ -63,25 +70,25 @@ class FreeCores:
 
     ``FreeCores(limit)()`` returns an int in ``[1, limit]`` (``limit``: default ``torch.get_num_threads()``
     at construction): this machine's cores (the process's CPU affinity) minus the cores the *other*
-    processes kept busy over the interval since the last call (all cores' busy time from ``/proc/stat``
-    less this process's own CPU time). Calls closer than ``min_interval`` seconds return the previous
-    answer; where ``/proc/stat`` cannot be read (not Linux) it returns ``limit``.
+    processes kept busy over the interval since the last call (every core's busy time, :func:`busy_seconds`,
+    less this process's own CPU time). Calls closer than ``min_interval`` seconds return the previous answer;
+    where the busy time cannot be read it returns ``limit``. ``busy`` replaces :func:`busy_seconds` (tests).
+
+    psutil reads what ``/proc/stat`` holds on Linux (this class read it itself until 2026-12-06) and the same
+    counters on macOS and Windows; the arithmetic of "the others' share" is this class's.
     """
 
-    def __init__(self, limit: int | None = None, min_interval: float = 0.5, stat: str | os.PathLike = PROC_STAT):
+    def __init__(self, limit: int | None = None, min_interval: float = 0.5,
+                 busy: Callable[[], float | None] = busy_seconds):
         self.limit = max(1, int(limit if limit is not None else torch.get_num_threads()))
         self.min_interval = float(min_interval)
-        self.stat = Path(stat)
-        try:
-            self.cores = len(os.sched_getaffinity(0))
-        except AttributeError:  # not Linux
-            self.cores = os.cpu_count() or 1
-        self.hz = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
+        self.busy = busy
+        self.cores = _affinity_cores()
         self.count = self.limit
         self._last = self._sample()
 
-    def _sample(self) -> tuple[float, tuple[int, int] | None, float]:
-        return time.monotonic(), _cpu_jiffies(self.stat), time.process_time()
+    def _sample(self) -> tuple[float, float | None, float]:
+        return time.monotonic(), self.busy(), time.process_time()
 
     def __call__(self) -> int:
         now = self._sample()
@@ -90,9 +97,8 @@ class FreeCores:
             return self.limit
         if wall < self.min_interval:
             return self.count
-        busy = (now[1][0] - self._last[1][0]) / self.hz  # core-seconds, every process
         own = now[2] - self._last[2]
-        others = max(0.0, busy - own) / wall  # cores the other processes kept busy
+        others = max(0.0, (now[1] - self._last[1]) - own) / wall  # cores the other processes kept busy
         self._last = now
         self.count = max(1, min(self.limit, self.cores - round(others)))
         return self.count

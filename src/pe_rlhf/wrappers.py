@@ -58,7 +58,9 @@ class InterventionWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
 
     def __init__(self, env: gym.Env, mentor, physics=None, selector=None, warmup_steps: int = 0,
                  warmup_driver=None, warmup_selection: bool = False):
-        gym.utils.RecordConstructorArgs.__init__(self, mentor=mentor, physics=physics, selector=selector,
+        # no deepcopy: the rebuilt wrapper shares these objects (a person's window cannot be copied)
+        gym.utils.RecordConstructorArgs.__init__(self, _disable_deepcopy=True, mentor=mentor, physics=physics,
+                                                 selector=selector,
                                                  warmup_steps=warmup_steps, warmup_driver=warmup_driver,
                                                  warmup_selection=warmup_selection)
         gym.Wrapper.__init__(self, env)
@@ -67,10 +69,24 @@ class InterventionWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self._observation = None
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
+        """gymnasium's reset; a ``seed`` also reseeds the mentor (``Mentor.reseed``) and starts the selector's veto
+        count afresh, so that the same seed and actions give the same episode (gymnasium's ``check_env``)."""
         obs, info = self.env.reset(seed=seed, options=options)
+        if seed is not None:
+            self._reseed(int(seed))
         self.core.reset(self.unwrapped)
         self._observation = obs
         return obs, info
+
+    def _reseed(self, seed: int) -> None:
+        core = self.core
+        if hasattr(core.mentor, "reseed"):
+            core.mentor.reseed(seed)
+        if hasattr(core.warmup_driver, "reseed"):
+            core.warmup_driver.reseed(seed)
+        if hasattr(core.physics, "reset"):
+            core.physics.reset()  # no lane plan carried over
+        core.load_state_dict({})  # no takeover in progress, no previous choice, the selector's veto count afresh
 
     def step(self, action):
         if self._observation is None:

@@ -162,3 +162,29 @@ def test_cli_export_then_import(recorded, minari_root, tmp_path, capsys):
     with pytest.raises(SystemExit) as exit_:
         cli.main(["demo", "export", str(recorded), "--out", "pe-rlhf/cli-v0"])  # exists
     assert exit_.value.code == 2 and "already exists" in capsys.readouterr().err
+
+
+def test_a_relative_path_is_relative_to_the_current_directory(recorded, tmp_path, monkeypatch):
+    """``--out ./exports/driver-v2`` as docs/data-and-logging.md shows: the dataset lands there, once."""
+    monkeypatch.delenv("MINARI_DATASETS_PATH", raising=False)
+    monkeypatch.chdir(tmp_path)
+    assert cli.main(["demo", "export", str(recorded), "--to", "minari", "--out", "./exports/driver-v2"]) == 0
+    assert minari.MinariDataset(tmp_path / "exports" / "driver-v2" / "data").total_steps == 100
+    assert sorted(p.name for p in (tmp_path / "exports").iterdir()) == ["driver-v2"]  # no staging folder left
+    assert export_minari(recorded, "../" + tmp_path.name + "/more/driver-v3")["episodes"] == 3
+    assert (tmp_path / "more" / "driver-v3" / "data" / "metadata.json").is_file()
+
+
+def test_a_failure_mid_way_leaves_nothing_and_the_same_export_can_run_again(recorded, minari_root):
+    """The HDF5 file is written, then the metadata cannot be: the staged dataset is removed, not half kept."""
+    episodes = directory_episodes(recorded)
+    with pytest.raises(TypeError):
+        write_minari(episodes, "pe-rlhf/half-v0", env_config=CONFIG, mentor="driver", metadata={"bad": object()})
+    assert not (minari_root / "pe-rlhf").exists()
+    assert [p.name for p in minari_root.iterdir()] == []  # no staging folder either
+    dataset = write_minari(episodes, "pe-rlhf/half-v0", env_config=CONFIG, mentor="driver", metadata={"ok": 1})
+    assert dataset.total_steps == 100 and dataset.storage.metadata["pe_rlhf"] == {"ok": 1}
+    assert minari.load_dataset("pe-rlhf/half-v0").total_episodes == 3
+    with pytest.raises(ValueError, match="already exists"):  # a complete dataset is never overwritten
+        write_minari(episodes, "pe-rlhf/half-v0", env_config=CONFIG, mentor="driver")
+    assert minari.load_dataset("pe-rlhf/half-v0").total_episodes == 3

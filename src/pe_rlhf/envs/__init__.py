@@ -2,19 +2,15 @@
 
 from __future__ import annotations
 
-import gymnasium as gym
-
+from pe_rlhf import ENV_ID, MAX_EPISODE_STEPS, register_env
 from pe_rlhf.envs.action import action_to_controls, controls_to_action
 from pe_rlhf.envs.config import DrivingConfig
 from pe_rlhf.envs.splits import TEST_SEEDS, TRAIN_SEEDS, parse_seeds, scene_seeds
 
-ENV_ID = "pe_rlhf/Driving-v0"
-
 
 def register() -> None:
-    """Register ``pe_rlhf/Driving-v0`` with gymnasium (idempotent)."""
-    if ENV_ID not in gym.registry:
-        gym.register(id=ENV_ID, entry_point="pe_rlhf.envs.driving_env:DrivingEnv")
+    """Register ``pe_rlhf/Driving-v0`` with gymnasium (idempotent; ``import pe_rlhf`` has done it already)."""
+    register_env()
 
 
 def make_gym_env(config: DrivingConfig | dict | None = None, render_mode: str | None = None):
@@ -37,6 +33,7 @@ register()
 
 __all__ = [
     "ENV_ID",
+    "MAX_EPISODE_STEPS",
     "DrivingConfig",
     "TEST_SEEDS",
     "TRAIN_SEEDS",

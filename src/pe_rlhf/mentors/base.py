@@ -41,6 +41,11 @@ class Mentor(ABC):
     def reset(self, env) -> None:
         """Called after every ``env.reset``."""
 
+    def reseed(self, seed: int) -> None:
+        """Start over as if built with ``seed`` (a seeded ``env.reset(seed=)`` calls it through
+        :class:`~pe_rlhf.wrappers.InterventionWrapper`): same seed, same decisions. A mentor without random
+        numbers or state across episodes has nothing to do (the default)."""
+
     @abstractmethod
     def act(self, env) -> np.ndarray:
         """The mentor's own action for the current state (driving alone)."""

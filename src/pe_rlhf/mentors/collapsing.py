@@ -62,6 +62,13 @@ class CollapsingMentor(Mentor):
             self.steps += 1
             self._road, self._env_step = sim.road, sim.steps
 
+    def reseed(self, seed: int) -> None:
+        """As built with ``seed``: both mentors reseeded, the step count back to 0 (not yet collapsed)."""
+        self.before.reseed(seed)
+        self.after.reseed(seed)
+        self.steps = 0
+        self._road, self._env_step = None, None
+
     def reset(self, env) -> None:
         """Episode start for both (the idle one must not carry a stale episode into the switch)."""
         self.before.reset(env)

@@ -1,4 +1,4 @@
-"""Demonstrations to and from Minari, Farama's offline-RL dataset format (``pip install "minari[hdf5]"``).
+"""Demonstrations to and from Minari, Farama's offline-RL dataset format (``pip install "pe-rlhf[minari]"``).
 
 :func:`export_minari` writes a dataset directory of :mod:`pe_rlhf.mentors.recording` as a Minari dataset
 (HDF5) that ``minari.load_dataset`` reads; :func:`import_minari` appends a Minari dataset's episodes to a
@@ -29,7 +29,12 @@ flags or agent actions (mentor-only driving): importing keeps the recording's ke
 Where a dataset lives (``target`` / ``source``): a NAME, a Minari id ``[namespace/]name-vN``, under
 ``$MINARI_DATASETS_PATH`` (default ``~/.minari/datasets``); a PATH (starting with ``/``, ``.`` or
 ``~``) is the dataset's own folder, its last part the id (``name-vN``): ``minari.MinariDataset(PATH /
-"data")`` opens it, and so does ``minari.load_dataset(id)`` with ``MINARI_DATASETS_PATH`` its parent.
+"data")`` opens it, and so does ``minari.load_dataset(id)`` with ``MINARI_DATASETS_PATH`` its parent. A
+relative PATH is relative to the current directory (``./exports/professional-v0``).
+
+Writing is all or nothing: the dataset is written into a hidden staging folder beside its destination
+(``.<name>.partial-<pid>-<hex>``) and moved into place by one rename once complete; on any failure the staging
+folder is removed, so a failed export leaves nothing behind and the same command can be run again.
 """
 
 from __future__ import annotations
@@ -37,6 +42,8 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import os
+import shutil
+import uuid
 import warnings
 from pathlib import Path
 from typing import Any, Iterable, Iterator
@@ -67,7 +74,7 @@ def _minari():
     try:
         import minari
     except ImportError as err:
-        raise ImportError(f"Minari export needs the minari package ({err}): pip install 'minari[hdf5]'") from err
+        raise ImportError(f"Minari export needs the minari package ({err}): pip install 'pe-rlhf[minari]'") from err
     return minari
 
 
@@ -80,7 +87,7 @@ def resolve(target: str) -> tuple[str, Path | None]:
     _minari()
     from minari.dataset.minari_dataset import parse_dataset_id
 
-    path = Path(target).expanduser()
+    path = Path(target).expanduser().absolute()  # relative to the current directory, once (Minari joins again)
     dataset_id = path.name if _is_path(target) else target
     try:
         parse_dataset_id(dataset_id)
@@ -107,6 +114,36 @@ def _datasets_root(root: Path | None) -> Iterator[None]:
             os.environ.pop("MINARI_DATASETS_PATH", None)
         else:
             os.environ["MINARI_DATASETS_PATH"] = previous
+
+
+def datasets_root(root: Path | None) -> Path:
+    """The absolute folder a dataset id is created under: ``root`` (a PATH's parent), else Minari's own
+    (``$MINARI_DATASETS_PATH``, default ``~/.minari/datasets``)."""
+    if root is not None:
+        return Path(root).absolute()
+    from minari.storage.datasets_root_dir import get_dataset_path
+
+    return get_dataset_path().expanduser().absolute()
+
+
+@contextlib.contextmanager
+def staged(dataset_id: str, root: Path) -> Iterator[Path]:
+    """A fresh staging root beside ``root / dataset_id``: the block writes the dataset under it; on success the
+    first folder of ``dataset_id`` that ``root`` lacks (the dataset's, or a new namespace's) is renamed into
+    place, on failure the staging root is removed. The destination must not exist yet."""
+    final = root / dataset_id
+    if final.exists():
+        raise ValueError(f"{final}: a dataset already exists there; choose another name or version (-vN)")
+    root.mkdir(parents=True, exist_ok=True)
+    staging = root / f".{Path(dataset_id).name}.partial-{os.getpid()}-{uuid.uuid4().hex[:8]}"
+    staging.mkdir()
+    try:
+        yield staging
+        parts = Path(dataset_id).parts
+        first_new = next(i for i in range(len(parts)) if not (root.joinpath(*parts[:i + 1])).exists())
+        os.rename(staging.joinpath(*parts[:first_new + 1]), root.joinpath(*parts[:first_new + 1]))
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
 
 
 def open_minari(source: str):
@@ -198,18 +235,19 @@ def write_minari(episodes: Iterable[TensorDictBase], target: str, *, env_config:
         raise ValueError("write_minari: no episodes to write")
     obs_size = buffers[0].observations.shape[-1]
     env_spec = dataclasses.replace(gym.spec(ENV_ID), kwargs={"config": env_config.to_dict()})
-    with _datasets_root(root), warnings.catch_warnings():
+    root = datasets_root(root)
+    with staged(dataset_id, root) as staging, _datasets_root(staging), warnings.catch_warnings():
         warnings.filterwarnings("ignore", message=_ADVICE, category=UserWarning)
         dataset = minari.create_dataset_from_buffers(
             dataset_id, buffers, env=env_spec, algorithm_name=mentor, data_format="hdf5",
             observation_space=gym.spaces.Box(-1.0, 1.0, (obs_size,), dtype=np.float32),
             action_space=gym.spaces.Box(-1.0, 1.0, (2,), dtype=np.float32), requirements=[f"pe-rlhf>={__version__}"],
             description=description or f"pe_rlhf driving demonstrations by {mentor}")
-    dataset.storage.update_metadata({"pe_rlhf": dict(metadata or {})})
-    episode_metadata = [dict(m) for m in episode_metadata or ()]
-    if any(episode_metadata):
-        dataset.storage.update_episode_metadata(episode_metadata, range(len(episode_metadata)))
-    return dataset
+        dataset.storage.update_metadata({"pe_rlhf": dict(metadata or {})})
+        episode_metadata = [dict(m) for m in episode_metadata or ()]
+        if any(episode_metadata):
+            dataset.storage.update_episode_metadata(episode_metadata, range(len(episode_metadata)))
+    return minari.MinariDataset(root / dataset_id / "data")
 
 
 def read_minari(source: str) -> Iterator[tuple[TensorDict, dict[str, Any]]]:

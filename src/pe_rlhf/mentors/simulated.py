@@ -178,6 +178,14 @@ class SimulatedMentor(Mentor):
         self.rule.reset()
 
     # -- mentor interface ----------------------------------------------------------------
+    def reseed(self, seed: int) -> None:
+        """As built with ``seed``: a fresh RNG, no fatigue, no episode under way."""
+        self.seed = int(seed)
+        self.rng = np.random.default_rng(self.seed)
+        self.controlled_steps = 0
+        self._resume = False
+        self._new_episode(None)
+
     def reset(self, env) -> None:
         """Episode start: clears the delay queue, manoeuvre and takeover span (fatigue persists)."""
         self._resume = False

@@ -28,8 +28,8 @@ from dataclasses import dataclass
 
 import torch
 from tensordict import TensorDict, TensorDictBase, TensorDictParams
-from tensordict.nn import ProbabilisticTensorDictSequential, TensorDictModule
-from tensordict.utils import NestedKey, unravel_key
+from tensordict.nn import ProbabilisticTensorDictSequential, TensorDictModule, dispatch
+from tensordict.utils import NestedKey
 from torch.distributions import Normal, kl_divergence
 from torchrl.objectives.common import LossModule
 from torchrl.objectives.utils import (
@@ -38,6 +38,7 @@ from torchrl.objectives.utils import (
     distance_loss,
 )
 
+from pe_rlhf.objectives.contract import KeyedLoss, next_keys
 from pe_rlhf.objectives.lagrangian import make_cost_gae
 
 CPO_CASES = ("recovery", "infeasible_start", "feasible_start", "constraint_inactive")  # c > 0 | c >= 0 | c < 0
@@ -120,7 +121,7 @@ def _flat(tensors) -> torch.Tensor:
     return torch.cat([t.reshape(-1) for t in tensors])
 
 
-class CPOLoss(LossModule):
+class CPOLoss(KeyedLoss, LossModule):
     """CPO's value losses (:meth:`forward`) and its constrained trust-region policy update (:meth:`policy_step`).
 
     Args:
@@ -183,18 +184,23 @@ class CPOLoss(LossModule):
         self.loss_critic_type, self.reduction = loss_critic_type, reduction
         self.__dict__["_cost_value_estimator"] = None  # built lazily, kept out of state_dict
 
-    @property
-    def out_keys(self) -> list[str]:
+    SUPPORTED_VALUE_ESTIMATORS = (ValueEstimators.GAE,)
+
+    def _loss_out_keys(self) -> list[str]:
         return ["loss_critic", "loss_cost_critic"]
 
-    @property
-    def in_keys(self) -> list[NestedKey]:
+    def _loss_in_keys(self) -> list[NestedKey]:
+        """What :meth:`forward` reads when the advantages are absent (GAE computes them): the critics' inputs now
+        and one step later, the step's reward, cost and flags. The policy step also reads the action."""
         keys = self.tensor_keys
-        step_keys = [unravel_key(("next", k)) for k in (keys.reward, keys.cost, keys.done, keys.terminated)]
-        return list({*self.actor_network.in_keys, keys.action, *step_keys})
+        states = [*self.critic_network.in_keys, *self.cost_critic_network.in_keys]
+        step = [keys.reward, keys.cost, keys.done, keys.terminated]
+        return [*self.actor_network.in_keys, keys.action, *states, *next_keys([*step, *states])]
 
     # -- advantages ----------------------------------------------------------------------------
     def make_value_estimator(self, value_type: ValueEstimators = None, **hyperparams):
+        if value_type is None or isinstance(value_type, (str, ValueEstimators)):
+            self.check_value_type(value_type)  # one clear line naming GAE, before TorchRL's dispatch
         value_type, hp = self._prepare_value_estimator_kwargs(value_type, **hyperparams)
         if value_type is not None:
             keys = self.tensor_keys
@@ -211,6 +217,7 @@ class CPOLoss(LossModule):
                                            value=keys.value, reward=keys.reward, done=keys.done,
                                            terminated=keys.terminated)
         self.__dict__["_cost_value_estimator"] = None
+        self._set_in_keys()
 
     @property
     def cost_value_estimator(self):
@@ -232,6 +239,7 @@ class CPOLoss(LossModule):
         return td
 
     # -- value losses ------------------------------------------------------------------------------
+    @dispatch
     def forward(self, tensordict: TensorDictBase) -> TensorDict:
         td, keys, out = self.compute_advantages(tensordict), self.tensor_keys, {}
         for name, network, value_key, target_key in (

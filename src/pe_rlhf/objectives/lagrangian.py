@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import torch
 from tensordict import TensorDictBase, TensorDictParams
-from tensordict.nn import ProbabilisticTensorDictSequential, TensorDictModule
+from tensordict.nn import ProbabilisticTensorDictSequential, TensorDictModule, dispatch
 from tensordict.utils import NestedKey, unravel_key
 from torch import nn
 from torchrl.envs.utils import ExplorationType, set_exploration_type
@@ -223,6 +223,7 @@ class SACLagLoss(SACLoss):
         loss = distance_loss(pred, target.expand_as(pred), loss_function=self.loss_function).sum(0)
         return self._reduce_loss(loss, tensordict=tensordict, weights=self._maybe_get_priority_weight(tensordict))
 
+    @dispatch
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """``SACLoss``'s outputs (with the penalised actor) plus ``loss_cost_qvalue`` and diagnostics."""
         out = super().forward(tensordict)
@@ -312,7 +313,10 @@ class PPOLagLoss(ClipPPOLoss):
     @property
     def out_keys(self) -> list[str]:
         if self._out_keys is None:
-            self._out_keys = [*ClipPPOLoss.out_keys.fget(self), "loss_cost_critic", "lagrange_multiplier"]
+            # ClipPPOLoss returns explained_variance without listing it (torchrl 0.14): listed here, or
+            # select_out_keys and keyword calls would not know it
+            variance = ["explained_variance"] if self._has_critic and self.log_explained_variance else []
+            self._out_keys = [*ClipPPOLoss.out_keys.fget(self), *variance, "loss_cost_critic", "lagrange_multiplier"]
         return self._out_keys
 
     @out_keys.setter
@@ -328,6 +332,7 @@ class PPOLagLoss(ClipPPOLoss):
         loss = distance_loss(value, tensordict.get(keys.cost_value_target), loss_function=self.loss_critic_type)
         return self.cost_critic_coeff * self._reduce_loss(loss, tensordict).squeeze(-1)
 
+    @dispatch
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         keys = self.tensor_keys
         td = tensordict.clone(False)

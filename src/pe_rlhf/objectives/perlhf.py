@@ -57,13 +57,14 @@ from dataclasses import dataclass
 
 import torch
 from tensordict import TensorDict, TensorDictBase, TensorDictParams
-from tensordict.nn import ProbabilisticTensorDictSequential, TensorDictModule
+from tensordict.nn import ProbabilisticTensorDictSequential, TensorDictModule, dispatch
 from tensordict.utils import NestedKey
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.objectives.common import LossModule
 from torchrl.objectives.sac import compute_rsample_log_prob
 from torchrl.objectives.utils import _vmap_func
 
+from pe_rlhf.objectives.contract import KeyedLoss, next_keys
 from pe_rlhf.objectives.fused_critics import detached, evaluate, mlp_plan, project_state
 
 INTERVENTION_CRITIC_ACTIONS = ("agent", "behavior")
@@ -85,7 +86,7 @@ def _rsample_log_prob(dist) -> tuple[torch.Tensor, torch.Tensor]:
     return action, log_prob
 
 
-class PERLHFLoss(LossModule):
+class PERLHFLoss(KeyedLoss, LossModule):
     """PE-RLHF's proxy-Q, CQL-style gap and intervention-cost losses (HACO and ablations as flags).
 
     Args:
@@ -128,6 +129,12 @@ class PERLHFLoss(LossModule):
     ``(..., 1)`` (optional: without it every terminal row counts as a failure), and the usual
     ``reward``, ``done``, ``terminated`` ``(..., 1)``. Any batch shape (flattened to one dim); the input
     tensordict is read, never written.
+
+    TorchRL's contract (:mod:`~pe_rlhf.objectives.contract`): ``in_keys`` lists what ``forward`` reads under the
+    current keys and options, ``out_keys`` what it returns (the four ``loss_*`` terms, then the diagnostics);
+    ``select_out_keys`` and keyword calls (``loss(observation=..., next_terminated=...)``) work as on
+    ``SACLoss``. The targets are one-step and written out above, so ``make_value_estimator`` accepts ``TD0``
+    only (its ``gamma`` becomes the loss's); any other estimator is refused with the list of supported ones.
     """
 
     @dataclass
@@ -262,6 +269,25 @@ class PERLHFLoss(LossModule):
     def alpha(self) -> torch.Tensor:
         return self.log_alpha.detach().exp()
 
+    # -- TorchRL's key contract ----------------------------------------------------------------
+    def _loss_in_keys(self) -> list[NestedKey]:
+        keys = self.tensor_keys
+        critics = [self.qvalue_network, self.intervention_qvalue_network]
+        critics += [self.disturbance_qvalue_network] if self.has_disturbance_critic else []
+        states = [k for critic in critics for k in critic.in_keys if k != keys.action]  # the loss sets the action
+        step = [keys.terminated] + ([keys.reward] if self.use_reward else [])
+        costs = ([keys.intervention_cost] if self.cosine_cost else []) + (
+            [keys.disturbance_cost] if self.has_disturbance_critic else [])
+        return [keys.action, keys.behavior_action, keys.intervention, keys.intervention_start, *costs,
+                *next_keys(step), keys.success, *self.actor_network.in_keys, *states,
+                *next_keys(self.actor_network.in_keys), *next_keys(states)]
+
+    def _loss_out_keys(self) -> list[str]:
+        disturbance = ["loss_disturbance_qvalue", "q_disturbance"] if self.has_disturbance_critic else []
+        return ["loss_qvalue", "loss_intervention_qvalue", "loss_actor", "loss_alpha", *disturbance[:1], "alpha",
+                "entropy", "td_loss", "gap_loss", "q_behavior", "q_agent", "q_intervention", "intervention_rate",
+                "failure_rate", "q_failure", *disturbance[1:]]
+
     # -- helpers ---------------------------------------------------------------------------
     def _q(self, critic: str, params, tensordict: TensorDictBase, action: torch.Tensor) -> torch.Tensor:
         """``(copies, *batch)`` values of ``critic`` (``"q"``, ``"q_int"``, ``"q_dist"``) under ``params``
@@ -353,6 +379,7 @@ class PERLHFLoss(LossModule):
         return values
 
     # -- the loss ----------------------------------------------------------------------------
+    @dispatch
     def forward(self, tensordict: TensorDictBase) -> TensorDict:
         keys = self.tensor_keys
         if tensordict.batch_dims != 1:  # the takeover rows are indexed along a single batch dim
