@@ -22,8 +22,8 @@ from torchrl.modules import MLP, ProbabilisticActor, TanhNormal
 from torchrl.objectives import ValueEstimators
 from torchrl.objectives.value import GAE, TD0Estimator
 
-from pe_rlhf.modules import make_actor, make_qvalue
-from pe_rlhf.objectives import CPOLoss, LagrangeMultiplier, PERLHFLoss, PPOLagLoss, SACLagLoss
+from pe_rlhf.modules import make_actor, make_deterministic_actor, make_qvalue
+from pe_rlhf.objectives import CPOLoss, LagrangeMultiplier, PERLHFLoss, PPOLagLoss, ProxyValueLoss, SACLagLoss
 from pe_rlhf.objectives.contract import UnsupportedValueEstimator
 from pe_rlhf.objectives.perlhf import make_transitions
 
@@ -37,6 +37,11 @@ def perlhf(**kwargs) -> PERLHFLoss:
     torch.manual_seed(0)
     return PERLHFLoss(make_actor(OBS, ACT, (16,)), make_qvalue(OBS, ACT, (16,)), make_qvalue(OBS, ACT, (16,)),
                       **kwargs)
+
+
+def proxy_value() -> ProxyValueLoss:
+    torch.manual_seed(0)
+    return ProxyValueLoss(make_deterministic_actor(OBS, ACT, (16,)), make_qvalue(OBS, ACT, (16,)), policy_delay=1)
 
 
 def perlhf_batch() -> TensorDict:
@@ -115,6 +120,8 @@ class Case:
 LOSSES = {
     "PERLHFLoss": Case(perlhf, perlhf_batch, ("loss_qvalue", "loss_actor"),
                        ("behavior_action", ("next", "executed_action")), ValueEstimators.TD0, ValueEstimators.GAE),
+    "ProxyValueLoss": Case(proxy_value, perlhf_batch, ("loss_qvalue", "td_loss"),
+                           ("behavior_action", ("next", "executed_action")), ValueEstimators.TD0, ValueEstimators.GAE),
     "SACLagLoss": Case(sac_lag, sac_batch, ("loss_actor", "loss_cost_qvalue"), ("cost", "safety_cost"),
                        ValueEstimators.TD0, ValueEstimators.GAE),
     "PPOLagLoss": Case(ppo_lag, trajectory_batch, ("loss_objective", "loss_cost_critic"), ("cost", "safety_cost"),

@@ -40,13 +40,15 @@ from dataclasses import dataclass
 
 import torch
 from tensordict import TensorDict, TensorDictBase, TensorDictParams
-from tensordict.nn import TensorDictModule
+from tensordict.nn import TensorDictModule, dispatch
 from tensordict.utils import NestedKey
 from torchrl.objectives.common import LossModule
 from torchrl.objectives.utils import _vmap_func
 
+from pe_rlhf.objectives.contract import KeyedLoss, next_keys
 
-class ProxyValueLoss(LossModule):
+
+class ProxyValueLoss(KeyedLoss, LossModule):
     """PVP's bounded proxy values on takeover rows, zero-reward TD3 on every row, a deterministic actor.
 
     Args:
@@ -80,8 +82,8 @@ class ProxyValueLoss(LossModule):
 
     default_keys = _AcceptedKeys
     tensor_keys: _AcceptedKeys
-    out_keys = ["loss_qvalue", "loss_actor", "td_loss", "proxy_loss", "bc_loss", "q_behavior", "q_agent",
-                "q_free", "td_error", "intervention_rate"]
+    OUTPUTS = ("loss_qvalue", "loss_actor", "td_loss", "proxy_loss", "bc_loss", "q_behavior", "q_agent", "q_free",
+               "td_error", "intervention_rate")
     actor_network: TensorDictModule
     qvalue_network: TensorDictModule
     actor_network_params: TensorDictParams
@@ -115,38 +117,17 @@ class ProxyValueLoss(LossModule):
         self.physics_labels = bool(physics_labels)
         self.register_buffer("calls", torch.zeros((), dtype=torch.long))
         self._vmap_q = _vmap_func(self.qvalue_network, (None, 0))
-        self._in_keys = None
 
-    # -- the TorchRL contract --------------------------------------------------------------------
-    def _forward_value_estimator_keys(self, **kwargs) -> None:
-        self._in_keys = None
+    # -- the TorchRL contract (pe_rlhf.objectives.contract: in_keys, out_keys, make_value_estimator TD0 only) ----
+    def _loss_in_keys(self) -> list[NestedKey]:
+        keys = self.tensor_keys
+        states = [k for k in self.qvalue_network.in_keys if k != self.policy_action_key]  # the loss sets the action
+        flags = [keys.intervention, keys.intervention_start] + ([] if self.physics_labels else [keys.mentor_selected])
+        return [keys.action, keys.behavior_action, *flags, *next_keys([keys.terminated]), *self.actor_network.in_keys,
+                *states, *next_keys(self.actor_network.in_keys), *next_keys(states)]
 
-    @property
-    def in_keys(self) -> list[NestedKey]:
-        """Every key ``forward`` reads, with the current names."""
-        if self._in_keys is None:
-            keys = self.tensor_keys
-            observation = [k for k in self.actor_network.in_keys]
-            self._in_keys = list(dict.fromkeys([
-                *observation, *[("next", k) for k in observation], keys.action, keys.behavior_action,
-                keys.intervention, keys.intervention_start, ("next", keys.terminated),
-                *([] if self.physics_labels else [keys.mentor_selected])]))
-        return self._in_keys
-
-    @in_keys.setter
-    def in_keys(self, values) -> None:
-        self._in_keys = values
-
-    def make_value_estimator(self, value_type=None, **hyperparams):
-        """Only the built-in one-step target exists (TD0 with TD3's smoothing); anything else is refused."""
-        from torchrl.objectives.utils import ValueEstimators
-
-        if value_type not in (None, ValueEstimators.TD0):
-            raise NotImplementedError(f"ProxyValueLoss supports only ValueEstimators.TD0 (its built-in zero-reward "
-                                      f"TD3 target), got {value_type}")
-        if "gamma" in hyperparams:
-            self.gamma = float(hyperparams["gamma"])
-        return self
+    def _loss_out_keys(self) -> list[str]:
+        return list(self.OUTPUTS)
 
     # -- values --------------------------------------------------------------------------------
     @property
@@ -181,6 +162,7 @@ class ProxyValueLoss(LossModule):
             return self.gamma * not_terminal * next_q
 
     # -- the loss ------------------------------------------------------------------------------
+    @dispatch
     def forward(self, tensordict: TensorDictBase) -> TensorDict:
         keys = self.tensor_keys
         if tensordict.batch_dims != 1:  # takeover rows are indexed along one batch dim
