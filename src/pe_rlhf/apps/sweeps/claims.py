@@ -148,5 +148,66 @@ def write_claims(cells_csv: str | Path | list[str | Path], out_dir: str | Path) 
     return summary
 
 
-__all__ = ["add_violations_after", "bootstrap_interval", "claims_summary", "markdown_table", "per_seed", "read_cells",
-           "violations_after", "write_claims"]
+# README's results table (:func:`readme_table`): readable method names, the mentors and methods in reading order
+# (others follow as the summary gives them, under their own names).
+METHOD_LABELS = {"pe_rlhf": "PE-RLHF", "pe_rlhf_paper_loss": "PE-RLHF (paper's loss)", "pvp": "PVP", "haco": "HACO",
+                 "idm_mobil": "IDM-MOBIL"}
+MENTOR_ORDER = ("professional", "adversarial", "amateur", "collapsing")
+README_TABLE_START = "<!-- claims-table: start (benchmarks/claims_summary.py --readme writes it) -->"
+README_TABLE_END = "<!-- claims-table: end -->"
+
+
+def _in_order(names, preferred: tuple[str, ...]) -> list[str]:
+    return [n for n in preferred if n in names] + [n for n in names if n not in preferred]
+
+
+def _interval(v, fmt: str) -> str:
+    """``mean [lo, hi]``; the mean alone where every seed agrees (one seed, a deterministic policy); ``—`` for none."""
+    if v is None or not all(isinstance(x, (int, float)) and math.isfinite(x) for x in v):
+        return "—"
+    mean, lo, hi = (f"{x:{fmt}}" for x in v)
+    return mean if v[0] == v[1] == v[2] else f"{mean} [{lo}, {hi}]"
+
+
+def readme_table(summary: dict, steps: int = 30_000, warmup: int = 10_000,
+                 scenes: str = "all 50 test scenes (1000–1049)") -> str:
+    """README's results table from a claims ``summary`` (module docstring): one row per mentor and method, methods by
+    their readable name (:data:`METHOD_LABELS`), each metric ``mean [lo, hi]``, then a line saying what a cell is
+    (``steps`` env steps, ``warmup`` of them the mentor's warm-up, the final evaluation on ``scenes``). A method
+    without training metrics (IDM-MOBIL) is evaluated only: its seeds show as ``—``."""
+    lines = ["| mentor | method | seeds | test success | test safety | training violations | takeover data usage |",
+             "|---|---|---|---|---|---|---|"]
+    for mentor in _in_order(list(summary), MENTOR_ORDER):
+        methods = summary[mentor]
+        for method in _in_order(list(methods), tuple(METHOD_LABELS)):
+            m = methods[method]
+            trained = m.get("train_violations") is not None
+            lines.append(f"| {mentor} | {METHOD_LABELS.get(method, method)} | {m['seeds'] if trained else '—'} | "
+                         f"{_interval(m.get('success'), '.2f')} | {_interval(m.get('test_safety'), '.2f')} | "
+                         f"{_interval(m.get('train_violations'), '.1f')} | "
+                         f"{_interval(m.get('takeover_usage'), '.2f')} |")
+    lines += ["", f"Mean [95% bootstrap interval] over seeds; each learned cell {steps // 1000}K env steps "
+                  f"({warmup // 1000}K of them the mentor's warm-up), final evaluation on {scenes}; "
+                  "test safety is 1 - the episodes' safety violation rate; IDM-MOBIL is evaluated, not trained."]
+    return "\n".join(lines)
+
+
+def with_readme_table(text: str, table: str) -> str:
+    """``text`` (README.md) with what lies between :data:`README_TABLE_START` and :data:`README_TABLE_END` replaced
+    by ``table``. ``ValueError`` when the markers are not there once each, in order."""
+    start, end = text.find(README_TABLE_START), text.find(README_TABLE_END)
+    if text.count(README_TABLE_START) != 1 or text.count(README_TABLE_END) != 1 or end < start:
+        raise ValueError(f"README: needs the lines {README_TABLE_START!r} and {README_TABLE_END!r} once each, "
+                         "in that order, around the results table")
+    return f"{text[:start + len(README_TABLE_START)]}\n{table}\n{text[end:]}"
+
+
+def readme_table_in(text: str) -> str:
+    """The table between README's markers (what :func:`with_readme_table` wrote)."""
+    start = text.index(README_TABLE_START) + len(README_TABLE_START)
+    return text[start:text.index(README_TABLE_END)].strip("\n")
+
+
+__all__ = ["METHOD_LABELS", "README_TABLE_END", "README_TABLE_START", "add_violations_after", "bootstrap_interval",
+           "claims_summary", "markdown_table", "per_seed", "read_cells", "readme_table", "readme_table_in",
+           "violations_after", "with_readme_table", "write_claims"]
