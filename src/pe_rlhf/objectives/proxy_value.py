@@ -21,11 +21,13 @@ returns:
   takeover rows). The actor's term is computed on every ``policy_delay``-th call (TD3's delay: calls
   ``policy_delay``, ``2 * policy_delay``, ...); on the calls in between ``loss_actor`` is a constant 0 and the
   actor is not evaluated. The call count is a buffer, saved
-  with the module's state.
+  with the module's state. With ``preactivation_penalty`` the actor's term adds that weight times the mean squared
+  pre-tanh output (``action_preactivation``, written by :func:`pe_rlhf.modules.make_deterministic_actor`).
 - diagnostics (detached): ``td_loss``, ``proxy_loss``, ``bc_loss``, ``q_behavior`` (mean ``Q`` at the executed
   action on takeover rows), ``q_agent`` (at the agent's proposal on takeover rows), ``q_free`` (at the executed
-  action on rows without a takeover), ``td_error`` (mean absolute), ``intervention_rate``; each is 0 where its
-  rows are missing from the batch.
+  action on rows without a takeover), ``td_error`` (mean absolute), ``intervention_rate``, ``actor_saturation``
+  (the share of the actor's action entries beyond 0.99 in magnitude, on the calls that evaluate the actor); each
+  is 0 where its rows are missing from the batch.
 
 Default keys (``set_keys`` renames): root ``observation`` (through the networks' in_keys) and ``action`` = the
 agent's proposal ``a_AV`` float ``(..., A)``; under ``next``: ``behavior_action`` ``(..., A)``, ``intervention`` and
@@ -66,6 +68,9 @@ class ProxyValueLoss(KeyedLoss, LossModule):
         bc_weight: weight of behaviour cloning toward the executed action on takeover rows (0: off).
         mask_td_at_takeover_start: leave takeover-start rows out of the TD term (PVP's mask).
         physics_labels: False: takeover rows whose executed action was physics' get TD only (module docstring).
+        preactivation_penalty: weight of ``mean ||u||^2`` on the actor's pre-tanh output ``u`` (read from
+            ``action_preactivation`` when the actor writes it): keeps the tanh out of its flat tails, where a
+            saturated actor (full brake, say) gets no gradient back (0: off).
     """
 
     @dataclass
@@ -83,7 +88,7 @@ class ProxyValueLoss(KeyedLoss, LossModule):
     default_keys = _AcceptedKeys
     tensor_keys: _AcceptedKeys
     OUTPUTS = ("loss_qvalue", "loss_actor", "td_loss", "proxy_loss", "bc_loss", "q_behavior", "q_agent", "q_free",
-               "td_error", "intervention_rate")
+               "td_error", "intervention_rate", "actor_saturation")
     actor_network: TensorDictModule
     qvalue_network: TensorDictModule
     actor_network_params: TensorDictParams
@@ -95,10 +100,11 @@ class ProxyValueLoss(KeyedLoss, LossModule):
                  q_value_bound: float = 1.0, gamma: float = 0.99, num_qvalue_nets: int = 2,
                  target_noise: float = 0.2, target_noise_clip: float = 0.5, policy_delay: int = 2,
                  bc_weight: float = 0.0, mask_td_at_takeover_start: bool = False,
-                 physics_labels: bool = True) -> None:
+                 physics_labels: bool = True, preactivation_penalty: float = 0.0) -> None:
         super().__init__()
         for name, value, low in (("q_value_bound", q_value_bound, 0.0), ("target_noise", target_noise, 0.0),
-                                 ("target_noise_clip", target_noise_clip, 0.0), ("bc_weight", bc_weight, 0.0)):
+                                 ("target_noise_clip", target_noise_clip, 0.0), ("bc_weight", bc_weight, 0.0),
+                                 ("preactivation_penalty", preactivation_penalty, 0.0)):
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) \
                     or value < low or (name == "q_value_bound" and value == 0):
                 raise ValueError(f"ProxyValueLoss {name}={value!r} is invalid: a finite number "
@@ -115,6 +121,7 @@ class ProxyValueLoss(KeyedLoss, LossModule):
         self.policy_delay, self.bc_weight = policy_delay, float(bc_weight)
         self.mask_td_at_takeover_start = bool(mask_td_at_takeover_start)
         self.physics_labels = bool(physics_labels)
+        self.preactivation_penalty = float(preactivation_penalty)
         self.register_buffer("calls", torch.zeros((), dtype=torch.long))
         self._vmap_q = _vmap_func(self.qvalue_network, (None, 0))
 
@@ -134,7 +141,13 @@ class ProxyValueLoss(KeyedLoss, LossModule):
     def policy_action_key(self) -> NestedKey:
         """The key the actor writes and the critics read their action from (the networks' own, ``action``); the
         stored proposal may live under another name (``tensor_keys.action``)."""
-        return self.actor_network.out_keys[0]
+        out = self.actor_network.out_keys
+        return "action" if "action" in out else out[0]
+
+    @property
+    def preactivation_key(self) -> NestedKey | None:
+        """Where the actor writes its pre-tanh output (:func:`pe_rlhf.modules.make_deterministic_actor`), or None."""
+        return "action_preactivation" if "action_preactivation" in self.actor_network.out_keys else None
 
     def _q(self, params, tensordict: TensorDictBase, action: torch.Tensor) -> torch.Tensor:
         """``(copies, rows)`` values of the critics under ``params`` at ``action``."""
@@ -143,11 +156,16 @@ class ProxyValueLoss(KeyedLoss, LossModule):
         td.set(self.policy_action_key, action)
         return self._vmap_q(td, params).get(self.tensor_keys.state_action_value).squeeze(-1)
 
-    def _act(self, params, tensordict: TensorDictBase) -> torch.Tensor:
-        """The deterministic actor's action under ``params`` (the input is not written)."""
+    def _act(self, params, tensordict: TensorDictBase, preactivation: bool = False):
+        """The deterministic actor's action under ``params`` (the input is not written); with ``preactivation``,
+        ``(action, pre-tanh output or None)``."""
         td = tensordict.select(*self.actor_network.in_keys, strict=False)
         with params.to_module(self.actor_network):
-            return self.actor_network(td).get(self.policy_action_key)
+            out = self.actor_network(td)
+        if not preactivation:
+            return out.get(self.policy_action_key)
+        key = self.preactivation_key
+        return out.get(self.policy_action_key), (out.get(key) if key is not None else None)
 
     def td_target(self, tensordict: TensorDictBase) -> torch.Tensor:
         """``(rows,)``: ``gamma * (1 - terminated) * min_k Q'_k(s', smoothed pi'(s'))``, zero reward, no grad."""
@@ -194,11 +212,14 @@ class ProxyValueLoss(KeyedLoss, LossModule):
         else:
             loss_proxy = zero
 
-        loss_actor, loss_bc = zero, zero
+        loss_actor, loss_bc, saturation = zero, zero, zero
         if (int(self.calls) + 1) % self.policy_delay == 0:  # after every policy_delay-th critic step
-            action = self._act(self.actor_network_params, tensordict)
+            action, pre = self._act(self.actor_network_params, tensordict, preactivation=True)
             q_first = self._q(self.qvalue_network_params.detach()[:1], tensordict, action)[0]
             loss_actor = -q_first.mean()
+            saturation = (action.detach().abs() > 0.99).float().mean()
+            if self.preactivation_penalty > 0 and pre is not None:
+                loss_actor = loss_actor + self.preactivation_penalty * pre.pow(2).sum(-1).mean()
             if self.bc_weight > 0 and labelled.any():
                 loss_bc = (action[labelled] - behavior[labelled]).pow(2).sum(-1).mean()
                 loss_actor = loss_actor + self.bc_weight * loss_bc
@@ -216,4 +237,5 @@ class ProxyValueLoss(KeyedLoss, LossModule):
             "q_free": detached[~takeover].mean() if (~takeover).any() else zero,
             "td_error": td_error.detach().abs().mean() if td_error.numel() else zero,
             "intervention_rate": takeover.float().mean(),
+            "actor_saturation": saturation,
         }, batch_size=[])

@@ -242,6 +242,8 @@ class LossConfig:
     mask_td_at_takeover_start: bool = knob(False, rule_bool)
     # objective=proxy_value: false: takeover rows where physics was executed get TD only (no labels, no cloning)
     physics_labels: bool = knob(True, rule_bool)
+    # objective=proxy_value: weight of the mean squared pre-tanh output in the actor's loss (keeps it unsaturated)
+    preactivation_penalty: float = knob(0.0, rule_number(0))
 
 
 @dataclass

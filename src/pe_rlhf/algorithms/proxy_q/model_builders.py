@@ -34,7 +34,8 @@ def build_loss(cfg, actor) -> tuple[PERLHFLoss | ProxyValueLoss, ForeachSoftUpda
                               num_qvalue_nets=int(c.num_qvalue_nets), target_noise=float(c.target_noise),
                               target_noise_clip=float(c.target_noise_clip), policy_delay=int(c.policy_delay),
                               bc_weight=float(c.bc_weight), mask_td_at_takeover_start=bool(c.mask_td_at_takeover_start),
-                              physics_labels=bool(c.physics_labels))
+                              physics_labels=bool(c.physics_labels),
+                              preactivation_penalty=float(c.preactivation_penalty))
         return loss, ForeachSoftUpdate(loss, tau=float(c.tau))
     target_entropy = cfg.loss.target_entropy
     disturbance = make_qvalue(n, hidden=hidden) if cfg.disturbance.enabled else None
