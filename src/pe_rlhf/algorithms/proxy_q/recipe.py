@@ -29,6 +29,7 @@ from pe_rlhf.runtime.config import save_config, to_container
 from pe_rlhf.runtime.metrics_logger import MetricsLogger
 from pe_rlhf.runtime.plots import plot_learning_curves
 from pe_rlhf.runtime.recipe import RunOptions, report_final
+from pe_rlhf.runtime.run_folder import hold_run_folder
 from pe_rlhf.algorithms.proxy_q.config import algorithm_name, finish_config, load_config, method_name
 from pe_rlhf.algorithms.proxy_q.config_schema import PROXY_Q
 from pe_rlhf.algorithms.proxy_q.trainer import train
@@ -67,11 +68,14 @@ def run(cfg: DictConfig, options: RunOptions = RunOptions()) -> dict:
     """Train a validated ``cfg`` into ``options.out`` (or continue the run in ``options.resume``), write the
     outputs, print the final table."""
     method = method_name(cfg)
-    if options.resume:
-        out = Path(options.resume)
-    else:
-        out = Path(options.out or cfg.logger.out_dir or f"runs/{method.lower()}-{time.strftime('%Y%m%d-%H%M%S')}")
-        out.mkdir(parents=True, exist_ok=True)
+    out = Path(options.resume) if options.resume else \
+        Path(options.out or cfg.logger.out_dir or f"runs/{method.lower()}-{time.strftime('%Y%m%d-%H%M%S')}")
+    with hold_run_folder(out):  # one writer per run folder, for the run's whole life
+        return _run_in(out, cfg, options, method)
+
+
+def _run_in(out: Path, cfg: DictConfig, options: RunOptions, method: str) -> dict:
+    if not options.resume:
         save_config(cfg, out / "config.yaml", algorithm_name(cfg))
     resume = bool(options.resume)
     with MetricsLogger(out, csv=bool(cfg.logger.csv), wandb=bool(cfg.logger.wandb),
