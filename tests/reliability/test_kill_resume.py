@@ -22,8 +22,8 @@ from pe_rlhf.runtime.journal import BatchJournal
 pytestmark = [pytest.mark.usefixtures("one_thread"), pytest.mark.filterwarnings("ignore::UserWarning")]
 
 
-def kill_when_journaled(out: Path, frames: int, timeout: float = 240.0) -> None:
-    proc = start_training(out, "collector.total_frames=300")
+def kill_when_journaled(out: Path, frames: int, timeout: float = 240.0, checkpoint_every: int = 100) -> None:
+    proc = start_training(out, "collector.total_frames=300", f"checkpoint.every_frames={checkpoint_every}")
     journal = out / "checkpoints" / "journal"
     deadline = time.time() + timeout
     try:

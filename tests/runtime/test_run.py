@@ -157,9 +157,10 @@ def test_resume_of_a_finished_run_evaluates_it_again(tmp_path, capsys):
     assert final["training"]["frames"] == 20
 
 
-def test_resume_without_a_checkpoint_says_so(tmp_path):
-    with pytest.raises(FileNotFoundError, match="no complete checkpoint"):
-        _run(tmp_path, RegressionLearner(total=20)).train(tmp_path, resume=True)
+def test_resume_without_a_checkpoint_says_so_and_starts_over(tmp_path, capsys):
+    final = _run(tmp_path, RegressionLearner(total=20)).train(tmp_path, resume=True)
+    assert "no complete checkpoint yet; nothing was journaled either: the run starts over" in capsys.readouterr().out
+    assert final["training"]["frames"] == 20
 
 
 def test_a_non_finite_loss_keeps_a_checkpoint_and_says_where(tmp_path):

@@ -5,7 +5,8 @@ finish that every recipe shares.
 
 1. with ``resume``, the newest checkpoint (:mod:`pe_rlhf.runtime.checkpoint`) is loaded into the learner's
    modules, optimisers and replay buffers, its env config checked (:func:`check_resumable`) and the rows
-   ``metrics.csv`` holds after it dropped (they are logged again);
+   ``metrics.csv`` holds after it dropped (they are logged again); with no complete checkpoint yet (a run killed
+   before its first), the fresh learner replays its journal from frame 0 (:meth:`Learner.replay_journal`);
 2. a fresh run's ``pretrain`` row at step 0, when the learner has one (HG-DAgger, IWR: BC on demonstrations);
 3. each batch the learner yields (frames collected online, or a round of offline updates) goes to its
    ``learn``, which returns the row; every ``eval_every`` units of progress a deterministic evaluation on
@@ -76,6 +77,11 @@ class Learner:
 
     def saved(self, step: int) -> None:
         """After each checkpoint, at ``step``."""
+
+    def replay_journal(self, step: int) -> int:
+        """Queue what the learner journaled from ``step`` on to be learned first; returns the progress it reaches
+        (``step``: nothing journaled, the default)."""
+        return step
 
     def postfix(self, row: dict[str, float]) -> dict:
         """The progress bar's postfix."""
@@ -219,7 +225,8 @@ class Run:
         """Load the newest checkpoint into the learner and the run."""
         checkpoint = find_checkpoint(self.checkpoint_dir)
         if checkpoint is None:
-            raise FileNotFoundError(f"no complete checkpoint under {self.checkpoint_dir}")
+            self.resume_from_start(out_dir)
+            return
         try:
             state = load_checkpoint(checkpoint, **self.checkpoint_objects(checkpoint))
         except CheckpointMismatch as e:
@@ -240,6 +247,15 @@ class Run:
         if self.done:  # otherwise the re-evaluation looks like training that did nothing
             print(f"{out_dir}: the run was already complete ({self.progress} of {self.total} {self.learner.unit}s); "
                   "evaluating it again (final_eval.json, actor.pt and the plots are rewritten)", flush=True)
+
+    def resume_from_start(self, out_dir: Path) -> None:
+        """No checkpoint is complete yet (killed before the first): the fresh learner (same seed, same
+        initial weights) replays what its journal holds from frame 0; with nothing journaled the run starts over."""
+        reached = self.learner.replay_journal(0)
+        self.logger.truncate_after(0)  # every row is logged again
+        what = (f"replaying the journal's {reached} {self.learner.unit}s from the start" if reached
+                else "nothing was journaled either: the run starts over")
+        print(f"{out_dir}: no complete checkpoint yet; {what}", flush=True)
 
     def stop_on_error(self, error: FloatingPointError) -> FloatingPointError:
         """Stop the learner, checkpoint what there is, and return the error to raise, saying where it is."""

@@ -238,12 +238,17 @@ class ProxyQLearner(Learner):
         self.restore_actors(state)
         if state.get("collection") is not None:  # the episode in progress at the checkpoint (single backend)
             self.resumed_collection = (state["collection"], state["mentor"])
+        if self.replay_journal(int(state["step"])) > int(state["step"]):  # collection went on: its episode is not
+            self.resumed_collection = None  # the next
+
+    def replay_journal(self, step: int) -> int:
+        """Queue the journal's batches from frame ``step`` on, and the pending file that continues them, to be
+        trained on first; returns the frame they reach (``step`` when there is nothing to replay)."""
         if self.journal is None:
-            return
-        self.journaled = self.journal.entries_after(int(state["step"]))
-        self.journaled_pending = self.journal.pending_at(self.journaled[-1].end if self.journaled else state["step"])
-        if self.journaled or self.journaled_pending is not None:  # collection went on: its episode is not the next
-            self.resumed_collection = None
+            return step
+        self.journaled = self.journal.entries_after(step)
+        self.journaled_pending = self.journal.pending_at(self.journaled[-1].end if self.journaled else step)
+        return max([step] + [e.end for e in self.journaled] + [getattr(self.journaled_pending, "end", step)])
 
     def restore_actors(self, state: dict) -> None:
         """The transform's step count and the mentor's state (multi-worker backends restart theirs)."""
