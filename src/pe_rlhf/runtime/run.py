@@ -33,6 +33,7 @@ from tqdm import tqdm
 
 from pe_rlhf.evaluation import TorchRLPolicyAdapter, evaluate
 from pe_rlhf.runtime.actor_selection import SELECTED_MODULE, ActorSelection
+from pe_rlhf.runtime.buffer_rows import drop_non_finite_rows
 from pe_rlhf.runtime.checkpoint import CheckpointMismatch, find_checkpoint, load_checkpoint, save_checkpoint
 from pe_rlhf.threads import torch_threads
 
@@ -237,6 +238,10 @@ class Run:
                              f"has it {now}; a run picks its actor over the whole run, so resume with the run's own "
                              "actor_selection.every_frames (its config.yaml value)") from None
         check_resumable(state.get("run"), self.run_info(), checkpoint)
+        for name, buffer in self.checkpoint_objects().get("replay_buffers", {}).items():
+            dropped = drop_non_finite_rows(buffer)  # such a row would stop every update again
+            if dropped:
+                print(f"{out_dir}: dropped {dropped} row(s) holding NaN or inf from replay buffer {name!r}", flush=True)
         if self.selection is not None:
             self.selection.load_state_dict(state["actor_selection"])
         self.saved_step, self.iterations = int(state["step"]), int(state.get("iterations", 0))
@@ -265,7 +270,9 @@ class Run:
             return FloatingPointError(f"{error} (no checkpoint directory: nothing saved)")
         path = self.save()
         return FloatingPointError(f"{error}. Saved checkpoint {path} ({self.learner.unit} {self.progress}, everything "
-                                  "collected included); fix the cause (e.g. a lower optim.lr) and --resume")
+                                  f"collected included). `--resume {self.checkpoint_dir.parent}` drops the replay rows holding NaN "
+                                  "or inf (bad data); if the loss diverged on finite data, resume with a lower learning "
+                                  f"rate, e.g. `--resume {self.checkpoint_dir.parent} optim.lr=<lower>` (a resume applies it)")
 
     def finish(self, out_dir: Path) -> dict:
         """The learner stopped, a last checkpoint, the final evaluation with the learner's summary, ``actor.pt``."""
