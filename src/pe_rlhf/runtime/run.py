@@ -24,6 +24,7 @@ units on train scenes, and the best snapshot, not the last, becomes the run's ac
 from __future__ import annotations
 
 import contextlib
+import io
 import time
 import warnings
 from pathlib import Path
@@ -31,6 +32,7 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
+from pe_rlhf import durable
 from pe_rlhf.evaluation import TorchRLPolicyAdapter, evaluate
 from pe_rlhf.runtime.actor_selection import SELECTED_MODULE, ActorSelection
 from pe_rlhf.runtime.buffer_rows import drop_non_finite_rows
@@ -292,8 +294,16 @@ class Run:
         final.update(self.learner.summary(out_dir))
         if self.seconds:
             final["training"].update(wall_time_s=self.wall_time(), **{f"{k}_s": v for k, v in self.seconds.items()})
-        torch.save({k: v.detach().cpu() for k, v in actor.state_dict().items()}, out_dir / ACTOR_FILE)
+        save_weights(actor, out_dir / ACTOR_FILE)
         return final
+
+
+def save_weights(module: torch.nn.Module, path: Path) -> Path:
+    """``module``'s state dict (on the CPU) at ``path``, atomically: a temp file renamed over it, so a reader sees
+    the old file or the new one, and a symlink at ``path`` is replaced, never written through."""
+    buf = io.BytesIO()
+    torch.save({k: v.detach().cpu() for k, v in module.state_dict().items()}, buf)
+    return durable.replace_bytes(path, buf.getvalue())
 
 
 def next_multiple(progress: float, every: int) -> float:
