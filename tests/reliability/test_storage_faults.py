@@ -126,7 +126,7 @@ def test_corrupt_journal_file_is_named_and_replay_stops_before_it(tmp_path, dama
     assert [end for end, _ in journal.files()] == [5]  # the frames after it are collected again
 
 
-@pytest.mark.parametrize("rel", ["tensors.pt", "state.json", "buffer_b/storage/observation.memmap"])
+@pytest.mark.parametrize("rel", ["tensors.pt", "state.json", "buffer_b/storage/observation.memmap.zlib"])
 def test_truncated_checkpoint_is_a_clear_error_not_a_torch_trace(tmp_path, rel):
     buffer = fresh_buffer()
     buffer.extend(TensorDict({"observation": torch.zeros(10, 250)}, batch_size=[10]))

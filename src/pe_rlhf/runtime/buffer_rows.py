@@ -7,8 +7,9 @@ buffers (the proxy-Q learner's takeover-balanced buffer): :func:`torchrl_buffers
 - :func:`drop_non_finite_rows`: a row with a NaN or inf anywhere (an observation that reached the buffer before the
   env checked its resets) would stop every update again; ``--resume`` keeps the others, in their order.
 - :func:`filled_rows_only`: while a checkpoint is written or read, each storage saves and loads its first ``len``
-  rows only (:class:`FilledRowsCheckpointer`), so a checkpoint is the size of what was collected, not of the
-  capacity (whose unused rows are uninitialised memory). A checkpoint written whole (before this) loads too.
+  rows only (:class:`FilledRowsCheckpointer`), each tensor file zlib-compressed (``*.memmap.zlib``: raw bytes, never
+  unpickled), so a checkpoint is the size of what was collected, not of the capacity (whose unused rows are
+  uninitialised memory). A checkpoint written whole and raw (before this) loads too.
 - :func:`check_buffer_fits`: a capacity whose rows cannot fit in this machine's memory is refused (ConfigError
   naming the field and the estimate) before anything is written.
 """
@@ -16,7 +17,11 @@ buffers (the proxy-Q learner's takeover-balanced buffer): :func:`torchrl_buffers
 from __future__ import annotations
 
 import contextlib
+import json
 import os
+import shutil
+import tempfile
+import zlib
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -27,6 +32,8 @@ from torchrl.data.replay_buffers.checkpointers import TensorStorageCheckpointer
 from torchrl.data.replay_buffers.storages import TensorStorage
 
 from pe_rlhf.runtime.config_rules import ConfigError
+
+MEMMAP, ZLIB = ".memmap", ".zlib"  # a buffer's tensor files, and the compressed ones a checkpoint holds
 
 __all__ = ["FilledRowsCheckpointer", "check_buffer_fits", "drop_non_finite_rows", "filled_rows_only",
            "torchrl_buffers"]
@@ -77,20 +84,37 @@ class FilledRowsCheckpointer(TensorStorageCheckpointer):
             super().dumps(storage, path)
         finally:
             storage._storage = full
+        for raw in Path(path).rglob(f"*{MEMMAP}"):  # observations compress about tenfold (lidar beams at range)
+            (raw.parent / (raw.name + ZLIB)).write_bytes(zlib.compress(raw.read_bytes(), 1))
+            raw.unlink()
 
     def loads(self, storage, path):
         path = Path(path)
-        rows = TensorDict.load_memmap(path)
-        import json
-
-        length = int(json.loads((path / "storage_metadata.json").read_text())["len"])
-        if length > storage.max_size or rows.shape[0] < length:
-            raise ValueError(f"{path} holds {length} rows; the buffer's capacity is {storage.max_size} "
-                             "(replay_buffer.size must be at least what the checkpoint holds)")
-        if not storage.initialized:
-            storage._init(rows[0])
-        storage._storage[:length].update_(rows[:length])
-        storage._len = length
+        with tempfile.TemporaryDirectory(prefix="pe_rlhf-buffer-") as tmp:
+            if any(path.rglob(f"*{MEMMAP}{ZLIB}")):  # decompressed beside, never in the checkpoint
+                for src in path.rglob("*"):
+                    dst = Path(tmp) / src.relative_to(path)
+                    if src.is_dir():
+                        dst.mkdir(parents=True, exist_ok=True)
+                    elif src.name.endswith(ZLIB):
+                        dst.parent.mkdir(parents=True, exist_ok=True)
+                        dst.with_name(dst.name[: -len(ZLIB)]).write_bytes(zlib.decompress(src.read_bytes()))
+                    else:
+                        dst.parent.mkdir(parents=True, exist_ok=True)
+                        shutil.copyfile(src, dst)
+                source = Path(tmp)
+            else:  # a checkpoint written before: raw memmaps, possibly of the whole capacity
+                source = path
+            rows = TensorDict.load_memmap(source)
+            length = int(json.loads((source / "storage_metadata.json").read_text())["len"])
+            if length > storage.max_size or rows.shape[0] < length:
+                raise ValueError(f"{path} holds {length} rows; the buffer's capacity is {storage.max_size} "
+                                 "(replay_buffer.size must be at least what the checkpoint holds)")
+            if not storage.initialized:
+                storage._init(rows[0])
+            storage._storage[:length].update_(rows[:length])
+            storage._len = length
+            del rows  # the memmaps close before their folder goes
 
 
 @contextlib.contextmanager
@@ -115,11 +139,25 @@ def memory_bytes() -> int | None:
         return None
 
 
-def check_buffer_fits(field: str, rows: int, row_bytes: int, copies: int = 1) -> None:
-    """ConfigError naming ``field`` when ``copies`` buffers of ``rows`` rows of ``row_bytes`` each cannot fit in
-    this machine's memory (a buffer's storage is allocated whole when its first row arrives)."""
+def check_buffer_fits(field: str, rows: int, row_bytes: int, copies: int = 1, *, saved_rows: int | None = None,
+                      checkpoints: int = 2, folder: str | os.PathLike | None = None) -> None:
+    """ConfigError naming ``field`` and the estimate when ``copies`` storages of ``rows`` rows of ``row_bytes`` each
+    cannot fit in this machine's memory (a storage is allocated whole when its first row arrives), or when
+    ``checkpoints`` checkpoints of ``saved_rows`` rows each (at most ``rows``; compression not counted) cannot fit
+    on the disk that holds ``folder`` (its nearest existing parent)."""
     need, have = int(rows) * int(row_bytes) * int(copies), memory_bytes()
     if have is not None and need > have:
-        raise ConfigError(f"{field}={rows} is invalid: its {copies} buffer(s) of {rows} rows would take about "
+        raise ConfigError(f"{field}={rows} is invalid: its {copies} buffer storage(s) of {rows} rows would take about "
                           f"{need / 1e9:.1f} GB ({row_bytes} bytes a row), more than this machine's "
                           f"{have / 1e9:.1f} GB of memory; use a smaller {field}", field)
+    if folder is None or saved_rows is None:
+        return
+    existing = Path(folder).absolute()
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    disk = int(min(int(rows), int(saved_rows)) * int(row_bytes) * int(checkpoints))
+    free = shutil.disk_usage(existing).free
+    if disk > free:
+        raise ConfigError(f"{field}={rows} is invalid: {checkpoints} checkpoints of up to {min(rows, saved_rows)} rows "
+                          f"would take about {disk / 1e9:.1f} GB, more than the {free / 1e9:.1f} GB free under "
+                          f"{existing}; use a smaller {field} or another --out", field)

@@ -29,7 +29,9 @@ from pe_rlhf.runtime.config import save_config, to_container
 from pe_rlhf.runtime.metrics_logger import MetricsLogger
 from pe_rlhf.runtime.plots import plot_learning_curves
 from pe_rlhf.runtime.recipe import RunOptions, report_final
+from pe_rlhf.runtime.buffer_rows import check_buffer_fits
 from pe_rlhf.runtime.run_folder import hold_run_folder
+from pe_rlhf.runtime.world import obs_dim
 from pe_rlhf.algorithms.proxy_q.config import algorithm_name, finish_config, load_config, method_name
 from pe_rlhf.algorithms.proxy_q.config_schema import PROXY_Q
 from pe_rlhf.algorithms.proxy_q.trainer import train
@@ -70,6 +72,10 @@ def run(cfg: DictConfig, options: RunOptions = RunOptions()) -> dict:
     method = method_name(cfg)
     out = Path(options.resume) if options.resume else \
         Path(options.out or cfg.logger.out_dir or f"runs/{method.lower()}-{time.strftime('%Y%m%d-%H%M%S')}")
+    rb = cfg.replay_buffer  # refused before anything is written: replay (2 storages when balanced) and warm-up
+    check_buffer_fits("replay_buffer.size", int(rb.size), 8 * obs_dim(cfg) + 256,
+                      3 if rb.get("takeover_share") is not None else 2, saved_rows=int(cfg.collector.total_frames),
+                      checkpoints=int(cfg.checkpoint.keep) + 1, folder=out)
     with hold_run_folder(out):  # one writer per run folder, for the run's whole life
         return _run_in(out, cfg, options, method)
 
