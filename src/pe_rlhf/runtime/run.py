@@ -37,6 +37,7 @@ from pe_rlhf.evaluation import TorchRLPolicyAdapter, evaluate
 from pe_rlhf.runtime.actor_selection import SELECTED_MODULE, ActorSelection
 from pe_rlhf.runtime.buffer_rows import drop_non_finite_rows
 from pe_rlhf.runtime.checkpoint import CheckpointMismatch, find_checkpoint, load_checkpoint, save_checkpoint
+from pe_rlhf.runtime.resume_changes import optimizer_settings, restore_optimizer_settings
 from pe_rlhf.threads import torch_threads
 
 ACTOR_FILE = "actor.pt"
@@ -230,8 +231,10 @@ class Run:
         if checkpoint is None:
             self.resume_from_start(out_dir)
             return
+        objects = self.checkpoint_objects(checkpoint)
+        configured = optimizer_settings(objects.get("optimizers", {}))  # this run's config, not the checkpoint's
         try:
-            state = load_checkpoint(checkpoint, **self.checkpoint_objects(checkpoint))
+            state = load_checkpoint(checkpoint, **objects)
         except CheckpointMismatch as e:
             if SELECTED_MODULE not in e.missing + e.extra:
                 raise
@@ -240,6 +243,7 @@ class Run:
                              f"has it {now}; a run picks its actor over the whole run, so resume with the run's own "
                              "actor_selection.every_frames (its config.yaml value)") from None
         check_resumable(state.get("run"), self.run_info(), checkpoint)
+        restore_optimizer_settings(objects.get("optimizers", {}), configured)  # optim.lr on --resume: applied
         for name, buffer in self.checkpoint_objects().get("replay_buffers", {}).items():
             dropped = drop_non_finite_rows(buffer)  # such a row would stop every update again
             if dropped:

@@ -30,11 +30,12 @@ from pe_rlhf.runtime.metrics_logger import MetricsLogger
 from pe_rlhf.runtime.plots import plot_learning_curves
 from pe_rlhf.runtime.recipe import RunOptions, report_final
 from pe_rlhf.runtime.buffer_rows import check_buffer_fits
+from pe_rlhf.runtime.resume_changes import announce_changes
 from pe_rlhf.runtime.run_folder import hold_run_folder
 from pe_rlhf.runtime.world import obs_dim
 from pe_rlhf.algorithms.proxy_q.config import algorithm_name, finish_config, load_config, method_name
 from pe_rlhf.algorithms.proxy_q.config_schema import PROXY_Q
-from pe_rlhf.algorithms.proxy_q.trainer import train
+from pe_rlhf.algorithms.proxy_q.trainer import RESUME_REFUSED, train
 
 
 def main(argv: list[str] | None = None, *, config_path: str | Path | None = None,
@@ -81,8 +82,9 @@ def run(cfg: DictConfig, options: RunOptions = RunOptions()) -> dict:
 
 
 def _run_in(out: Path, cfg: DictConfig, options: RunOptions, method: str) -> dict:
-    if not options.resume:
-        save_config(cfg, out / "config.yaml", algorithm_name(cfg))
+    if options.resume:  # each changed setting applied (and said) or refused in one line; config.yaml follows
+        announce_changes(load_config(out / "config.yaml", apply_profile=False), cfg, RESUME_REFUSED, str(out))
+    save_config(cfg, out / "config.yaml", algorithm_name(cfg))
     resume = bool(options.resume)
     with MetricsLogger(out, csv=bool(cfg.logger.csv), wandb=bool(cfg.logger.wandb),
                        wandb_mode=str(cfg.logger.wandb_mode),

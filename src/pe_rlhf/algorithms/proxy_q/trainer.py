@@ -64,6 +64,36 @@ from pe_rlhf.transforms import InterventionTransform, RealtimePacing
 if TYPE_CHECKING:
     from pe_rlhf.runtime.journal import JournalEntry
 
+# Settings a --resume cannot change (pe_rlhf.runtime.resume_changes): the checkpoint's state would override them, or
+# the saved data was cut by them; every other change is applied (and announced).
+RESUME_REFUSED = {
+    "seed": "the checkpoint's RNG states continue the run's random streams",
+    "profile": "a resume composes the run's config.yaml without a profile; set the fields themselves",
+    "env": "the networks learned that world",
+    "mentor": "the checkpoint holds that mentor's state",
+    "collector.frames_per_batch": "the journal's batches and pending episodes are cut at the run's size",
+    "collector.warmup_steps": "the warm-up data and the fitted ensemble are the run's",
+    "collector.warmup_policy": "the warm-up data are the run's",
+    "collector.backend": "the collection in progress belongs to the run's backend",
+    "collector.num_workers": "the collection in progress belongs to the run's workers",
+    "replay_buffer.takeover_share": "the buffers' layout (takeover rows apart or not) is the checkpoint's",
+    "loss.hidden": "the checkpoint's networks have the run's sizes",
+    "loss.num_qvalue_nets": "the checkpoint's networks are the run's",
+    "loss.num_intervention_qvalue_nets": "the checkpoint's networks are the run's",
+    "loss.num_disturbance_qvalue_nets": "the checkpoint's networks are the run's",
+    "loss.fused_critics": "the checkpoint's critics have the run's layout",
+    "loss.alpha_init": "the checkpoint's alpha continues",
+    "loss.target_entropy": "the checkpoint's loss holds the run's target entropy",
+    "selector.num_members": "the checkpoint's ensemble has the run's size",
+    "selector.hidden": "the checkpoint's ensemble has the run's sizes",
+    "selector.enabled": "the checkpoint's modules are the run's",
+    "disturbance.enabled": "the checkpoint's critics are the run's",
+    "actor_selection": "a run picks its actor over the whole run",
+    "checkpoint.every_frames": lambda was, now: ("0 turns the journal off, and with it the batches it holds"
+                                                 if int(now or 0) == 0 and int(was or 0) > 0 else None),
+}
+
+
 class Counters:
     """Cumulative training bookkeeping (saved in checkpoints)."""
 
