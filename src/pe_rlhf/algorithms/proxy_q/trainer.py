@@ -94,6 +94,16 @@ RESUME_REFUSED = {
 }
 
 
+def cut_to(batch, frames: int):
+    """``batch`` without its steps past ``frames`` (the run's last batch after a short pending one: the collector
+    counts whole batches); a ``(workers, T)`` batch is cut along time, to the least ``T`` that covers ``frames``."""
+    if batch.numel() <= frames:
+        return batch
+    if batch.ndim == 1:
+        return batch[:frames]
+    return batch[..., : -(-frames // (batch.numel() // batch.shape[-1]))]
+
+
 class Counters:
     """Cumulative training bookkeeping (saved in checkpoints)."""
 
@@ -334,7 +344,7 @@ class ProxyQLearner(Learner):
             self.counters.env_seconds += time.time() - t_env
             if self.done:
                 break
-            yield batch, False
+            yield cut_to(batch, int(self.cfg.collector.total_frames) - int(self.counters.frames)), False
             t_env = time.time()
 
     def learn(self, item) -> dict[str, float]:
