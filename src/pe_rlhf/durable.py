@@ -16,6 +16,7 @@ be opened there, and NTFS journals renames itself, so a directory fsync is a no-
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import os
 from pathlib import Path
@@ -66,7 +67,8 @@ def replace_bytes(path: str | os.PathLike, data: bytes, *, tmp: str | os.PathLik
         write_bytes(tmp, data)
         os.replace(tmp, path)
     except BaseException:
-        tmp.unlink(missing_ok=True)
+        with contextlib.suppress(OSError):  # a read-only folder: the clean-up's own error must not hide the first
+            tmp.unlink(missing_ok=True)
         raise
     fsync_path(path.parent)
     return path

@@ -36,7 +36,8 @@ from pe_rlhf import durable
 from pe_rlhf.evaluation import TorchRLPolicyAdapter, evaluate
 from pe_rlhf.runtime.actor_selection import SELECTED_MODULE, ActorSelection
 from pe_rlhf.runtime.buffer_rows import drop_non_finite_rows
-from pe_rlhf.runtime.checkpoint import CheckpointMismatch, find_checkpoint, load_checkpoint, save_checkpoint
+from pe_rlhf.runtime.checkpoint import (CheckpointError, CheckpointMismatch, find_checkpoint, list_checkpoints,
+                                        load_checkpoint, save_checkpoint)
 from pe_rlhf.runtime.resume_changes import optimizer_settings, restore_optimizer_settings
 from pe_rlhf.threads import torch_threads
 
@@ -233,15 +234,7 @@ class Run:
             return
         objects = self.checkpoint_objects(checkpoint)
         configured = optimizer_settings(objects.get("optimizers", {}))  # this run's config, not the checkpoint's
-        try:
-            state = load_checkpoint(checkpoint, **objects)
-        except CheckpointMismatch as e:
-            if SELECTED_MODULE not in e.missing + e.extra:
-                raise
-            was, now = ("off", "on") if self.selection is not None else ("on", "off")
-            raise ValueError(f"cannot resume from {checkpoint}: it was written with actor_selection {was}, this run "
-                             f"has it {now}; a run picks its actor over the whole run, so resume with the run's own "
-                             "actor_selection.every_frames (its config.yaml value)") from None
+        checkpoint, state = self.load_intact(checkpoint, objects, out_dir)
         check_resumable(state.get("run"), self.run_info(), checkpoint)
         restore_optimizer_settings(objects.get("optimizers", {}), configured)  # optim.lr on --resume: applied
         for name, buffer in self.checkpoint_objects().get("replay_buffers", {}).items():
@@ -258,6 +251,31 @@ class Run:
         if self.done:  # otherwise the re-evaluation looks like training that did nothing
             print(f"{out_dir}: the run was already complete ({self.progress} of {self.total} {self.learner.unit}s); "
                   "evaluating it again (final_eval.json, actor.pt and the plots are rewritten)", flush=True)
+
+    def load_intact(self, checkpoint: Path, objects: dict, out_dir: Path) -> tuple[Path, dict]:
+        """Load ``checkpoint`` into ``objects``; when it is damaged (truncated, corrupt), the newest intact earlier
+        one, saying so. Returns the checkpoint loaded and its state."""
+        candidates = [checkpoint, *(p for p in reversed(list_checkpoints(checkpoint.parent)) if p.name < checkpoint.name)]
+        for candidate in candidates:
+            try:
+                state = load_checkpoint(candidate, **objects)
+            except CheckpointError as e:
+                if candidate == candidates[-1]:
+                    raise
+                print(f"{out_dir}: {e}; trying the checkpoint before it", flush=True)
+                continue
+            except CheckpointMismatch as e:
+                if SELECTED_MODULE not in e.missing + e.extra:
+                    raise
+                was, now = ("off", "on") if self.selection is not None else ("on", "off")
+                raise ValueError(f"cannot resume from {candidate}: it was written with actor_selection {was}, this "
+                                 f"run has it {now}; a run picks its actor over the whole run, so resume with the "
+                                 "run's own actor_selection.every_frames (its config.yaml value)") from None
+            if candidate != checkpoint:
+                print(f"{out_dir}: resuming from the intact {candidate.name}; what came after it is collected again",
+                      flush=True)
+            return candidate, state
+        raise AssertionError("unreachable")
 
     def resume_from_start(self, out_dir: Path) -> None:
         """No checkpoint is complete yet (killed before the first): the fresh learner (same seed, same

@@ -73,8 +73,22 @@ def load_run_actor(run_dir: str | Path):
         raise FileNotFoundError(f"{run_dir}: the baseline run has no actor.pt (it has not finished)")
     cfg = _run_config(run_dir)
     actor = make_actor(obs_dim(cfg), hidden=tuple(cfg.loss.hidden))
-    actor.load_state_dict(torch.load(run_dir / "actor.pt", weights_only=True, map_location="cpu"))
+    actor.load_state_dict(load_weights(run_dir / "actor.pt"))
     return actor
+
+
+def load_weights(path: Path) -> dict:
+    """A state dict saved by a run (``torch.load(weights_only=True)``); ValueError in one line naming ``path`` and
+    what is wrong when it is truncated, corrupt or not plain tensor data (never torch's advice to load unsafely)."""
+    from pe_rlhf.runtime.checkpoint import short_error
+
+    try:
+        state = torch.load(path, weights_only=True, map_location="cpu")
+    except Exception as e:  # noqa: BLE001 - unpickling errors of every kind: the file and the reason, no stack
+        raise ValueError(f"refusing {path}: {short_error(e, 200)}") from None
+    if not isinstance(state, dict):
+        raise ValueError(f"refusing {path}: it holds a {type(state).__name__}, not a state dict of tensors")
+    return state
 
 
 def load_actor(run_dir: str | Path, checkpoint: str | Path | None = None):
@@ -92,10 +106,10 @@ def load_actor(run_dir: str | Path, checkpoint: str | Path | None = None):
     actor = builders.build_actor(cfg)
     final = run_dir / "actor.pt"
     if checkpoint is None and final.exists():
+        state = load_weights(final)
         try:
-            state = torch.load(final, weights_only=True, map_location="cpu")
             actor.load_state_dict(state)
-        except Exception as e:  # a corrupt or foreign file: say which
+        except Exception as e:  # a foreign file: say which
             raise ValueError(f"cannot load the actor from {final}: {type(e).__name__}: {str(e)[:200]}") from None
         return actor
     loss, _ = builders.build_loss(cfg, actor)
