@@ -14,7 +14,7 @@ finish that every recipe shares.
    with an evaluation, and the last); every ``checkpoint_every`` (or when the learner asks) a checkpoint;
 4. a non-finite loss, gradient or parameter (``FloatingPointError``): a checkpoint of what there is, and the
    error, saying where it is;
-5. the finish: a last checkpoint, the final evaluation with the learner's ``summary``, ``actor.pt``.
+5. the finish: a last checkpoint, the final evaluation with the learner's ``summary``, ``actor.safetensors``.
 
 With ``actor_selection.every_frames`` (a config group; 0 or absent: off) the actor is also scored every that many
 units on train scenes, and the best snapshot, not the last, becomes the run's actor
@@ -24,7 +24,6 @@ units on train scenes, and the best snapshot, not the last, becomes the run's ac
 from __future__ import annotations
 
 import contextlib
-import io
 import time
 import warnings
 from pathlib import Path
@@ -41,7 +40,7 @@ from pe_rlhf.runtime.checkpoint import (CheckpointError, CheckpointMismatch, fin
 from pe_rlhf.runtime.resume_changes import optimizer_settings, restore_optimizer_settings
 from pe_rlhf.threads import torch_threads
 
-ACTOR_FILE = "actor.pt"
+ACTOR_FILE = "actor.safetensors"  # weights only; runs from before it have actor.pt (still loaded)
 EVAL_KEYS = ("episodic_return", "success_rate", "safety_violation", "travel_distance", "travel_velocity",
              "overtake_count")
 
@@ -50,7 +49,7 @@ class Learner:
     """What a method plugs into :class:`Run`; the hooks defined here are optional.
 
     A learner has ``name`` (the progress bar's label), ``env_config`` (its :class:`~pe_rlhf.envs.DrivingConfig`),
-    ``actor`` (evaluated deterministically, saved as ``actor.pt``), ``progress`` (frames, or updates offline: the
+    ``actor`` (evaluated deterministically, saved as ``actor.safetensors``), ``progress`` (frames, or updates offline: the
     step of rows and checkpoints), and ``batches()`` (the work, one item per ``learn``; it stops when the run is
     complete), ``learn(batch)`` (returns the batch's row of metrics), ``checkpoint_objects(checkpoint=None)``
     (``modules``, ``optimizers`` and ``replay_buffers`` to save, or to load ``checkpoint`` into),
@@ -250,7 +249,7 @@ class Run:
         self.learner.load_state_dict(state)
         if self.done:  # otherwise the re-evaluation looks like training that did nothing
             print(f"{out_dir}: the run was already complete ({self.progress} of {self.total} {self.learner.unit}s); "
-                  "evaluating it again (final_eval.json, actor.pt and the plots are rewritten)", flush=True)
+                  "evaluating it again (final_eval.json, the actor and the plots are rewritten)", flush=True)
 
     def load_intact(self, checkpoint: Path, objects: dict, out_dir: Path) -> tuple[Path, dict]:
         """Load ``checkpoint`` into ``objects``; when it is damaged (truncated, corrupt), the newest intact earlier
@@ -299,7 +298,7 @@ class Run:
                                   f"rate, e.g. `--resume {self.checkpoint_dir.parent} optim.lr=<lower>` (a resume applies it)")
 
     def finish(self, out_dir: Path) -> dict:
-        """The learner stopped, a last checkpoint, the final evaluation with the learner's summary, ``actor.pt``."""
+        """The learner stopped, a last checkpoint, the final evaluation with the learner's summary, the actor."""
         self.learner.stop()
         if self.checkpoint_dir is not None and self.progress > self.saved_step:
             self.save()
@@ -321,11 +320,9 @@ class Run:
 
 
 def save_weights(module: torch.nn.Module, path: Path) -> Path:
-    """``module``'s state dict (on the CPU) at ``path``, atomically: a temp file renamed over it, so a reader sees
+    """``module``'s state dict as safetensors at ``path``, atomically: a temp file renamed over it, so a reader sees
     the old file or the new one, and a symlink at ``path`` is replaced, never written through."""
-    buf = io.BytesIO()
-    torch.save({k: v.detach().cpu() for k, v in module.state_dict().items()}, buf)
-    return durable.replace_bytes(path, buf.getvalue())
+    return durable.save_tensors(path, module.state_dict())
 
 
 def next_multiple(progress: float, every: int) -> float:

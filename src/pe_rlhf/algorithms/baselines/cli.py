@@ -13,7 +13,7 @@ function (tests, ``pe-rlhf sweep``), over ``recipes/<method>/config.yaml``.
 
 Outputs in the run folder: ``config.yaml`` (the resolved config), ``metrics.csv``, ``final_eval.json``
 (the six metrics on ``eval.split`` with deterministic actions, plus training totals),
-``learning_curves.png`` (+ ``testing_curves.png`` with periodic evaluations), ``actor.pt`` and
+``learning_curves.png`` (+ ``testing_curves.png`` with periodic evaluations), ``actor.safetensors`` and
 ``checkpoints/``; the imitation methods also ``demos/`` when ``data.path`` is null (the recorded
 demonstrations).
 

@@ -11,7 +11,7 @@ into the same command line (:mod:`pe_rlhf.algorithms.baselines.cli`).
 
 Outputs in the run folder: ``config.yaml`` (resolved, with the method's registry name as ``algorithm:``),
 ``metrics.csv``, ``checkpoints/``, ``final_eval.json`` (with ``"algorithm"``), ``training_curves.png``,
-``actor.pt``, ``test_episode.gif`` (with ``eval.video``) and ``reference_<policy>.json`` (with ``--compare``).
+``actor.safetensors``, ``test_episode.gif`` (with ``eval.video``) and ``reference_<policy>.json`` (with ``--compare``).
 """
 
 from __future__ import annotations
