@@ -8,6 +8,10 @@ One place for what checkpoints, human-demonstration recordings, the crash-safe C
   fsyncs the directory: readers see the old file or the new one, never a part.
 - :func:`fsync_path` makes a written file's data, or a directory's entries, durable.
 - :func:`sha256_file` hashes a file in chunks.
+- :func:`save_tensors` / :func:`load_tensors`: weights (an actor, critics, the packaged expert) as a safetensors
+  file (plain tensors and a string table: nothing in it can run code), written with :func:`replace_bytes`; a legacy
+  torch file (``.pt``) loads with ``weights_only=True``. A truncated, corrupt or unsafe file of either kind is a
+  ``ValueError`` in one line naming the file and what is wrong.
 
 Windows: files are opened in binary mode (``O_BINARY``; without it, ``os.write`` translates
 newlines); a file's fsync needs a writable handle, so it is reopened read-write; directories cannot
@@ -21,7 +25,9 @@ lines below, each exercised by ``tests/test_durable.py`` and ``tests/reliability
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
+import io
 import os
 from pathlib import Path
 
@@ -71,7 +77,8 @@ def replace_bytes(path: str | os.PathLike, data: bytes, *, tmp: str | os.PathLik
         write_bytes(tmp, data)
         os.replace(tmp, path)
     except BaseException:
-        tmp.unlink(missing_ok=True)
+        with contextlib.suppress(OSError):  # a read-only folder: the clean-up's own error must not hide the first
+            tmp.unlink(missing_ok=True)
         raise
     fsync_path(path.parent)
     return path
@@ -86,4 +93,48 @@ def sha256_file(path: str | os.PathLike) -> str:
     return digest.hexdigest()
 
 
-__all__ = ["fsync_path", "replace_bytes", "sha256_file", "write_bytes"]
+def save_tensors(path: str | os.PathLike, tensors: dict, metadata: dict[str, str] | None = None) -> Path:
+    """``tensors`` (name -> tensor; copied to the CPU, contiguous) as a safetensors file at ``path``, atomically."""
+    from safetensors.torch import save
+
+    data = save({k: v.detach().cpu().contiguous() for k, v in tensors.items()}, metadata=metadata)
+    return replace_bytes(path, data)
+
+
+def load_tensors(path: str | os.PathLike) -> tuple[dict, dict[str, str]]:
+    """``(tensors, metadata)`` of a safetensors file, or of a legacy torch file (a dict of tensors, loaded with
+    ``weights_only=True``; metadata ``{}``) recognised by its content; ValueError naming ``path`` if unreadable."""
+    import torch
+
+    path = Path(path)
+    data = path.read_bytes()
+    if data[:2] == b"PK" or data[:1] == b"\x80":  # a torch zip archive, or a legacy pickle
+        try:
+            tensors = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
+        except Exception as e:  # noqa: BLE001 - unpickling errors of every kind: the file and the reason
+            raise ValueError(f"refusing {path}: {_reason(e)}") from None
+        if not isinstance(tensors, dict):
+            raise ValueError(f"refusing {path}: it holds a {type(tensors).__name__}, not a dict of tensors")
+        return tensors, {}
+    from safetensors import safe_open
+    from safetensors.torch import load
+
+    try:
+        tensors = load(data)
+        with safe_open(path, framework="pt") as f:
+            metadata = dict(f.metadata() or {})
+    except Exception as e:  # noqa: BLE001 - a truncated or foreign file
+        raise ValueError(f"refusing {path}: not a readable safetensors file (truncated or corrupt: "
+                         f"{' '.join(str(e).split())[:160]})") from None
+    return tensors, metadata
+
+
+def _reason(error: BaseException) -> str:
+    text = " ".join(str(error).split())
+    if "WeightsUnpickler error" in text:  # torch's refusal: its reason, not its advice to load unsafely
+        reason = text.split("WeightsUnpickler error:", 1)[1].split(" was not an allowed global")[0]
+        return f"not plain tensor data ({reason.strip()[:160]})"
+    return f"truncated or corrupt ({type(error).__name__}: {text[:160]})"
+
+
+__all__ = ["fsync_path", "load_tensors", "replace_bytes", "save_tensors", "sha256_file", "write_bytes"]

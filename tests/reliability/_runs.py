@@ -5,6 +5,7 @@ from __future__ import annotations
 import importlib.util
 import json
 import os
+import random
 import subprocess
 import sys
 from pathlib import Path
@@ -23,6 +24,17 @@ TINY = ["profile=smoke", "optim.device=cpu", "env.horizon=50", "collector.frames
         "collector.learning_starts=25", "optim.updates_per_batch=2", "selector.warmup_fit_steps=10",
         "eval.every_frames=0", "eval.episodes=1", "eval.video=false", "checkpoint.every_frames=100",
         "checkpoint.keep=2"]
+
+
+KILL_SEED_VAR = "PE_RLHF_KILL_SEED"
+
+
+def kill_rng(what: str) -> random.Random:
+    """The RNG that picks when a test kills a process: seeded from ``$PE_RLHF_KILL_SEED``, else from a fresh seed,
+    printed (pytest shows it with a failure) so that the very kill can be replayed."""
+    seed = int(os.environ.get(KILL_SEED_VAR) or random.SystemRandom().randrange(2**31))
+    print(f"{what}: kill seed {seed} (replay: {KILL_SEED_VAR}={seed} pytest ...)", flush=True)
+    return random.Random(seed)
 
 
 def load_recipe():

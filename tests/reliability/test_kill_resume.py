@@ -8,22 +8,21 @@ is the reference: replay buffers, counters, networks, optimisers and RNG states 
 
 from __future__ import annotations
 
-import random
 import signal
 import time
 from pathlib import Path
 
 import pytest
 from _compare import assert_same
-from _runs import checkpoint_contents, start_training, train
+from _runs import checkpoint_contents, kill_rng, start_training, train
 
 from pe_rlhf.runtime.journal import BatchJournal
 
 pytestmark = [pytest.mark.usefixtures("one_thread"), pytest.mark.filterwarnings("ignore::UserWarning")]
 
 
-def kill_when_journaled(out: Path, frames: int, timeout: float = 240.0) -> None:
-    proc = start_training(out, "collector.total_frames=300")
+def kill_when_journaled(out: Path, frames: int, timeout: float = 240.0, checkpoint_every: int = 100) -> None:
+    proc = start_training(out, "collector.total_frames=300", f"checkpoint.every_frames={checkpoint_every}")
     journal = out / "checkpoints" / "journal"
     deadline = time.time() + timeout
     try:
@@ -42,7 +41,7 @@ def kill_when_journaled(out: Path, frames: int, timeout: float = 240.0) -> None:
 
 
 def test_sigkill_then_resume_loses_no_batch_and_matches_an_uninterrupted_run(tmp_path):
-    target = random.SystemRandom().choice([125, 150, 175])  # the kill lands somewhere after this batch
+    target = kill_rng("training").choice([125, 150, 175])  # the kill lands somewhere after this batch
     killed = tmp_path / "killed"
     kill_when_journaled(killed, target)
     ckpts = killed / "checkpoints"

@@ -11,7 +11,6 @@ an uninterrupted run's up to the episode's end, and the counters agree with that
 from __future__ import annotations
 
 import os
-import random
 import signal
 import time
 from pathlib import Path
@@ -19,7 +18,7 @@ from pathlib import Path
 import pytest
 import torch
 from _compare import assert_same
-from _runs import checkpoint_contents, start_training, train
+from _runs import checkpoint_contents, kill_rng, start_training, train
 from torchrl.collectors import Collector
 from torchrl.envs import GymEnv, StepCounter, TransformedEnv
 from torchrl.envs.utils import RandomPolicy
@@ -120,7 +119,7 @@ def kill_with_pending_episode(out: Path, after: int, timeout: float = 240.0) -> 
 
 
 def test_sigkill_keeps_the_episodes_that_ended_in_the_batch_being_collected(tmp_path):
-    after = random.SystemRandom().choice([125, 150, 175])  # past the checkpoint at 100: journal replay too
+    after = kill_rng("training").choice([125, 150, 175])  # past the checkpoint at 100: journal replay too
     killed = tmp_path / "killed"
     start, end = kill_with_pending_episode(killed, after)
     ckpts = killed / "checkpoints"

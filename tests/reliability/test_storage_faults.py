@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import errno
 import os
-import random
 import signal
 import subprocess
 import sys
@@ -17,7 +16,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from _runs import ROOT, train
+from _runs import ROOT, kill_rng, train
 from _scripts import SCRIPT_ENV
 from tensordict import TensorDict
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
@@ -56,7 +55,7 @@ def test_sigkill_during_checkpoint_writes_leaves_a_valid_checkpoint(tmp_path):
         while not (tmp_path / "ckpt_000000002" / "COMPLETE").exists():
             assert proc.poll() is None and time.time() < deadline, proc.stderr.read().decode()[-2000:]
             time.sleep(0.01)
-        time.sleep(random.SystemRandom().uniform(0.0, 1.0))  # somewhere inside a later write
+        time.sleep(kill_rng("checkpoint writer").uniform(0.0, 1.0))  # somewhere inside a later write
     finally:
         proc.send_signal(signal.SIGKILL)
         proc.wait()
@@ -126,7 +125,7 @@ def test_corrupt_journal_file_is_named_and_replay_stops_before_it(tmp_path, dama
     assert [end for end, _ in journal.files()] == [5]  # the frames after it are collected again
 
 
-@pytest.mark.parametrize("rel", ["tensors.pt", "state.json", "buffer_b/storage/observation.memmap"])
+@pytest.mark.parametrize("rel", ["tensors.pt", "state.json", "buffer_b/storage/observation.memmap.zlib"])
 def test_truncated_checkpoint_is_a_clear_error_not_a_torch_trace(tmp_path, rel):
     buffer = fresh_buffer()
     buffer.extend(TensorDict({"observation": torch.zeros(10, 250)}, batch_size=[10]))

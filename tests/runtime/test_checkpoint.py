@@ -258,7 +258,7 @@ def test_resaving_a_step_replaces_it(tmp_path, trained):
 # --------------------------------------------------------------------------- corruption
 
 
-@pytest.mark.parametrize("rel", ["tensors.pt", "rng.pt", "state.json", "buffer_online/storage/observation.memmap"])
+@pytest.mark.parametrize("rel", ["tensors.pt", "rng.pt", "state.json", "buffer_online/storage/observation.memmap.zlib"])
 def test_truncated_file_raises_checkpoint_error_naming_it(tmp_path, trained, rel):
     ckpt = trained.save(tmp_path, step=1)
     path = ckpt / rel

@@ -21,6 +21,7 @@ from pe_rlhf.envs.observation import observation_size
 from pe_rlhf.modules.networks import make_actor
 from pe_rlhf.runtime.checkpoint import list_checkpoints
 from pe_rlhf.runtime.recipe import report_final
+from pe_rlhf.durable import load_tensors
 from pe_rlhf.runtime.run import ACTOR_FILE, Learner, Run, next_multiple
 
 BATCH = 10
@@ -122,7 +123,7 @@ def test_a_run_learns_and_keeps_its_cadence(tmp_path):
     # the finish: the final evaluation (1 episode) with the learner's summary and the timers, and actor.pt
     assert final["algorithm"] == "regression" and final["training"]["frames"] == 60
     assert final["training"]["update_s"] >= 0 and final["success_rate"]["mean"] in (0.0, 1.0)
-    saved = torch.load(tmp_path / ACTOR_FILE, weights_only=True)
+    saved = load_tensors(tmp_path / ACTOR_FILE)[0]
     assert saved.keys() == run.learner.actor.state_dict().keys()
     # learning progress: the loss fell
     losses = [m["loss"] for _, m in logger.rows]
@@ -157,9 +158,10 @@ def test_resume_of_a_finished_run_evaluates_it_again(tmp_path, capsys):
     assert final["training"]["frames"] == 20
 
 
-def test_resume_without_a_checkpoint_says_so(tmp_path):
-    with pytest.raises(FileNotFoundError, match="no complete checkpoint"):
-        _run(tmp_path, RegressionLearner(total=20)).train(tmp_path, resume=True)
+def test_resume_without_a_checkpoint_says_so_and_starts_over(tmp_path, capsys):
+    final = _run(tmp_path, RegressionLearner(total=20)).train(tmp_path, resume=True)
+    assert "no complete checkpoint yet; nothing was journaled either: the run starts over" in capsys.readouterr().out
+    assert final["training"]["frames"] == 20
 
 
 def test_a_non_finite_loss_keeps_a_checkpoint_and_says_where(tmp_path):
@@ -221,7 +223,7 @@ def test_the_actor_picked_on_train_scenes_is_the_best_snapshot_not_the_last(tmp_
     assert final["route_completion"]["mean"] > final["last_actor"]["route_completion"]["mean"]
     assert "episodes_detail" not in final["last_actor"]
     # actor.pt holds the picked weights: those of the checkpoint at the picked step
-    saved = torch.load(tmp_path / ACTOR_FILE, weights_only=True)
+    saved = load_tensors(tmp_path / ACTOR_FILE)[0]
     at_pick = torch.load(tmp_path / "checkpoints" / f"ckpt_{picked:09d}" / "tensors.pt", weights_only=True)
     for k, v in saved.items():
         assert torch.equal(v, at_pick["modules"]["actor"][k]), k
@@ -246,8 +248,8 @@ def test_a_resumed_run_picks_as_the_uninterrupted_one(tmp_path):
     again = _picking_run(cut, SwitchingLearner(total=300, switch_at=100, seed=7))
     got = again.train(cut, resume=True)["actor_selection"]
     assert got == expected
-    for k, v in torch.load(tmp_path / "whole" / ACTOR_FILE, weights_only=True).items():
-        assert torch.equal(v, torch.load(cut / ACTOR_FILE, weights_only=True)[k]), k
+    for k, v in load_tensors(tmp_path / "whole" / ACTOR_FILE)[0].items():
+        assert torch.equal(v, load_tensors(cut / ACTOR_FILE)[0][k]), k
 
 
 @pytest.mark.parametrize("picking_before", [False, True])

@@ -12,7 +12,9 @@ Episodes end on success, crash or out of road (terminated) or at ``horizon`` ste
 Simulator faults: if a step raises, or returns a non-finite observation, reward or info value, the
 episode ends there as truncated with ``info["sim_error"] = True`` (observation and info of the last
 good step, reward and cost 0) and a warning on the ``pe_rlhf.envs`` logger naming the scene, the
-step and the fault; the next ``reset`` loads a fresh scene, so a run goes on.
+step and the fault; the next ``reset`` loads a fresh scene, so a run goes on. A ``reset`` whose first observation or
+info is non-finite draws another scene (logged, counted in ``sim_errors``); with a given ``scene_seed``, or
+``MAX_CONSECUTIVE_SIM_ERRORS`` scenes in a row, it raises :class:`SimulatorError`: nothing non-finite leaves the env.
 ``MAX_CONSECUTIVE_SIM_ERRORS`` faults in a row (no good step between them) re-raise: the simulator
 is broken, not unlucky.
 
@@ -141,13 +143,22 @@ class DrivingEnv(AbstractEnv):
         if unknown:
             raise ValueError(f"unknown reset option(s) {sorted(unknown)}; allowed: ['scene_seed']")
         scene_seed = options.get("scene_seed")
-        self.scene_seed = self._draw_scene_seed() if scene_seed is None else int(scene_seed)
-        self.time = self.steps = 0
-        self.done = False
-        self._episode_actions = []
-        self._load(self.scene(self.scene_seed))
-        obs = build_observation(self)
-        info = self._info_dict(cost=0.0)
+        for attempt in range(1, MAX_CONSECUTIVE_SIM_ERRORS + 1):  # a non-finite start: another scene, or stop
+            self.scene_seed = self._draw_scene_seed() if scene_seed is None else int(scene_seed)
+            self.time = self.steps = 0
+            self.done = False
+            self._episode_actions = []
+            self._load(self.scene(self.scene_seed))
+            obs = build_observation(self)
+            info = self._info_dict(cost=0.0)
+            fault = _non_finite((obs, 0.0, False, False, info))
+            if fault is None:
+                break
+            self.sim_errors += 1
+            if scene_seed is not None or attempt == MAX_CONSECUTIVE_SIM_ERRORS:
+                raise SimulatorError(f"scene {self.scene_seed}: the simulator's first observation is not finite "
+                                     f"({fault})" + ("" if scene_seed is not None else f", {attempt} scenes in a row"))
+            log.warning("scene %s reset: simulator fault (%s); drawing another scene", self.scene_seed, fault[:300])
         self._last_good = (obs, info)
         if self.render_mode == "human":
             self.render()

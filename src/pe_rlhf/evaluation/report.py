@@ -38,7 +38,7 @@ def _cell(stat: Mapping[str, float] | None, fmt: str, sep: str = " ") -> str:
     return f"{stat['mean']:{fmt}}{sep}± {stat['std']:{fmt}}"
 
 
-GENERIC_PARTS = ("checkpoints", "actor.pt", "latest")  # path parts that do not tell runs apart
+GENERIC_PARTS = ("checkpoints", "actor.safetensors", "actor.pt", "latest")  # path parts that do not tell runs apart
 
 
 def fit_label(name: str, max_width: int = LABEL_WIDTH) -> str:

@@ -26,6 +26,7 @@ import io
 import json
 import re
 import time
+import warnings
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -79,9 +80,15 @@ def read_manifest(directory: str | Path) -> list[dict[str, Any]]:
     if not path.exists():
         return []
     entries: list[dict[str, Any]] = []
-    for lineno, line in enumerate(path.read_bytes().split(b"\n"), start=1):
+    data = path.read_bytes()
+    lines = data.split(b"\n")
+    for lineno, line in enumerate(lines, start=1):
         if not line.strip():
             continue
+        if lineno == len(lines) and not _is_manifest_line(line):  # no newline after it: a write a kill tore
+            warnings.warn(f"{path} line {lineno} is torn (the recorder was killed while writing it): that "
+                          f"episode is lost, the {len(entries)} before it are kept", stacklevel=2)
+            break
         try:
             entry = json.loads(line)
             if not isinstance(entry, dict) or any(k not in entry for k in MANIFEST_FIELDS):
@@ -93,6 +100,22 @@ def read_manifest(directory: str | Path) -> list[dict[str, Any]]:
                              f"line starts {line[:60]!r}") from None
         entries.append(entry)
     return entries
+
+
+def _is_manifest_line(line: bytes) -> bool:
+    try:
+        entry = json.loads(line)
+    except ValueError:
+        return False
+    return isinstance(entry, dict) and all(k in entry for k in MANIFEST_FIELDS)
+
+
+def _drop_torn_line(path: Path) -> None:
+    """Rewrite a manifest whose last line is torn without it (before a reopened recorder appends after it)."""
+    if path.exists():
+        data = path.read_bytes()
+        if data and not data.endswith(b"\n"):
+            replace_bytes(path, data[: data.rfind(b"\n") + 1])
 
 
 def _config_mismatches(recorded: dict, requested: DrivingConfig) -> list[str]:
@@ -208,6 +231,7 @@ class DemonstrationRecorder:
             replace_bytes(self.directory / "metadata.json", json.dumps(self.metadata, indent=2).encode())
         self.seeds = seeds  # (the recorded ones unless allow_mismatch let other seeds through)
         self.entries = read_manifest(self.directory)
+        _drop_torn_line(self.directory / "manifest.jsonl")  # the next line must not continue a torn one
         keep = {Path(e["file"]).name for e in self.entries}
         for p in (self.directory / "episodes").iterdir():  # killed mid-write: not in the manifest
             if p.name not in keep and CHUNK_NAME.match(p.name) and p.is_file():

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import pickle
 import zipfile
@@ -13,10 +14,12 @@ from tensordict import TensorDict
 from tensordict.nn import EnsembleModule, TensorDictParams
 from torch import nn
 
+from pe_rlhf import durable
 from pe_rlhf.modules.networks import make_qvalue
 
 _FORMAT = "pe_rlhf.q_ensemble"
 _FORMAT_VERSION = 1
+SAFETENSORS = ".safetensors"  # save_q_ensemble's format by the path's suffix (else a torch file)
 
 
 class QEnsemble(nn.Module):
@@ -79,10 +82,9 @@ def _rebuild_q_ensemble(config: dict[str, Any], params: TensorDict, requires_gra
 
 
 def save_q_ensemble(ensemble: QEnsemble, path: str | os.PathLike) -> None:
-    """Write ``ensemble``'s weights and constructor config to ``path`` (``torch.save``).
-
-    The file holds only plain tensors (on CPU), ints, strings, lists and dicts, so it loads
-    with ``torch.load(..., weights_only=True)``.
+    """Write ``ensemble``'s weights and constructor config to ``path``: a safetensors file when ``path`` ends in
+    ``.safetensors`` (the config in its metadata), else ``torch.save`` of plain tensors (on CPU), ints, strings,
+    lists and dicts, which loads with ``torch.load(..., weights_only=True)``. :func:`load_q_ensemble` reads both.
     """
     if not isinstance(ensemble, QEnsemble):
         raise TypeError(f"save_q_ensemble expects a QEnsemble, got {type(ensemble).__name__}")
@@ -94,7 +96,27 @@ def save_q_ensemble(ensemble: QEnsemble, path: str | os.PathLike) -> None:
                    "num_members": cfg["num_members"], "hidden": list(cfg["hidden"])},
         "state_dict": {k: v.detach().cpu().clone() for k, v in ensemble.state_dict().items()},
     }
+    if os.fspath(path).endswith(SAFETENSORS):  # weights and a string table: nothing in it can run code
+        durable.save_tensors(path, payload["state_dict"], {"format": _FORMAT, "version": str(_FORMAT_VERSION),
+                                                           "config": json.dumps(payload["config"])})
+        return
     torch.save(payload, os.fspath(path))
+
+
+def _is_torch_file(path: str) -> bool:
+    with open(path, "rb") as f:
+        return f.read(2) in (b"PK", b"\x80\x02")  # a torch zip archive, or a legacy pickle
+
+
+def _read_payload(path: str) -> dict:
+    """What ``torch.save`` would have held, from a safetensors file :func:`save_q_ensemble` wrote."""
+    tensors, meta = durable.load_tensors(path)
+    try:
+        config = json.loads(meta.get("config", "null"))
+        version = int(meta.get("version", -1))
+    except ValueError:
+        config, version = None, -1
+    return {"format": meta.get("format"), "version": version, "config": config, "state_dict": tensors}
 
 
 def load_q_ensemble(path: str | os.PathLike, *, map_location: str | torch.device | None = "cpu",
@@ -111,7 +133,8 @@ def load_q_ensemble(path: str | os.PathLike, *, map_location: str | torch.device
     if not os.path.isfile(path):
         raise FileNotFoundError(f"load_q_ensemble: no such file {path!r}")
     try:
-        payload = torch.load(path, map_location=map_location, weights_only=True)
+        payload = _read_payload(path) if not _is_torch_file(path) else \
+            torch.load(path, map_location=map_location, weights_only=True)
     except (pickle.UnpicklingError, RuntimeError, EOFError, zipfile.BadZipFile, OSError, ValueError,
             TypeError, AttributeError, KeyError, IndexError, UnicodeDecodeError) as err:
         raise ValueError(f"load_q_ensemble: {path!r} is not a readable Q-ensemble checkpoint "

@@ -6,7 +6,7 @@ collapse). :class:`ActorSelection` evaluates the actor every ``actor_selection.e
 ``actor_selection.episodes`` scenes of the TRAIN split, never the test scenes (they are for the final
 evaluation only); default all 50, since a pick on the first 20 disagreed with the other 30 train scenes in 2 of
 4 cells (``docs/results/claims/README.md``). It keeps a copy of the best one, and at the finish the run
-evaluates both the last and the picked actor on ``eval.split``; the picked one becomes ``actor.pt`` and
+evaluates both the last and the picked actor on ``eval.split``; the picked one becomes ``actor.safetensors`` and
 ``final_eval.json``, the last one's summary is kept beside it (``final_eval.json["last_actor"]``), so every run
 measures what the pick changed.
 

@@ -11,7 +11,9 @@ On disk (``directory/``)::
         rng.pt                 torch CPU (+ CUDA) generator states as uint8 tensors, numpy's
                                global MT19937 state and Python ``random``'s state as lists of ints
                                (``weights_only=True`` as well)
-        buffer_<name>/         ``TensorDictReplayBuffer.dumps`` (memmap + JSON files)
+        buffer_<name>/         ``TensorDictReplayBuffer.dumps`` (memmap + JSON files) of the filled rows only
+                               (:func:`~pe_rlhf.runtime.buffer_rows.filled_rows_only`: the size of what was
+                               collected, not of the buffer's capacity)
         COMPLETE               JSON written last: format_version, step, ``sha256`` of tensors.pt,
                                and bytes + sha256 of every other file in the checkpoint
     latest                     the newest checkpoint's directory name (one line)
@@ -51,6 +53,7 @@ import torch
 
 from pe_rlhf import durable
 from pe_rlhf.filelock import FileLock
+from pe_rlhf.runtime.buffer_rows import filled_rows_only
 
 __all__ = [
     "CheckpointMismatch",
@@ -260,7 +263,7 @@ def _sanitize_prefetch(buffer_dir: Path, buffer) -> None:
 def _check_buffer_files(buffer_dir: Path) -> None:
     """Refuse files in a buffer directory that torchrl would unpickle unless they are plain data."""
     for path in sorted(p for p in buffer_dir.rglob("*") if p.is_file()):
-        if path.suffix in (".memmap", ".json"):
+        if path.suffix in (".memmap", ".json") or path.name.endswith(".memmap.zlib"):  # raw data, never unpickled
             continue
         data = path.read_bytes()
         if data[:2] == b"PK":  # a torch zip archive (torchrl loads it with torch.load)
@@ -371,7 +374,8 @@ def save_checkpoint(
                     buffers_meta[name] = {"empty": True}
                     continue
                 bdir = tmp / f"{BUFFER_PREFIX}{name}"
-                buffer.dumps(bdir)
+                with filled_rows_only(buffer):  # the rows collected, not the capacity's uninitialised rest
+                    buffer.dumps(bdir)
                 _sanitize_prefetch(bdir, buffer)
                 buffers_meta[name] = {"empty": False, "length": len(buffer)}
             files = {}
@@ -635,7 +639,8 @@ def load_checkpoint(
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", FutureWarning)  # tensordict's allow_pickle notice
-                buffer.loads(bdir)
+                with filled_rows_only(buffer):
+                    buffer.loads(bdir)
         except Exception as e:  # noqa: BLE001
             raise CheckpointError(f"replay buffer {name!r} could not be loaded from {bdir}: {short_error(e)}") from None
         expected = marker["buffers"][name].get("length")

@@ -19,6 +19,7 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
+from pe_rlhf import durable
 from pe_rlhf.envs.config import DrivingConfig
 from pe_rlhf.runtime.config_rules import ConfigError, check_human_kwargs, invalid_value, rule_bool, rule_number
 
@@ -139,7 +140,7 @@ def save_config(cfg: DictConfig, path: str | Path, algorithm: str | None = None)
     path.parent.mkdir(parents=True, exist_ok=True)
     if algorithm is not None:
         cfg = OmegaConf.create({ALGORITHM_KEY: algorithm, **to_container(cfg)})
-    OmegaConf.save(cfg, path, resolve=True)
+    durable.replace_bytes(path, OmegaConf.to_yaml(cfg, resolve=True).encode())  # atomic, never through a symlink
     return path
 
 

@@ -17,15 +17,17 @@ run, its outputs written, :func:`report_final` printed): the proxy-Q recipes' in
 :mod:`pe_rlhf.algorithms.proxy_q.recipe`, the baselines' in :mod:`pe_rlhf.algorithms.baselines.cli`.
 
 Errors, for every recipe (the baselines' ``train.py`` too): a bad config value, file or override (a
-:class:`~pe_rlhf.runtime.config_rules.ConfigError`; the config is composed and checked before anything is built) or a
-bad argument prints one line ``error: <message>`` to stderr and exits 2, without a traceback.
-``PE_RLHF_DEBUG=1 python recipes/<method>/train.py ...`` shows the traceback instead (an environment
-variable, not a flag: the command line is the run's config overrides). Called as a function,
-``main(argv)`` raises the ConfigError.
+:class:`~pe_rlhf.runtime.config_rules.ConfigError`; the config is composed and checked before anything is built), a
+bad argument, or a failure at run time that a user can cause (:data:`RUNTIME_FAILURES`: a corrupt checkpoint, a full
+disk, a read-only run folder, a run folder another run holds, a non-finite loss, memory) prints one line
+``error: <message>`` to stderr and exits 2, without a traceback. ``--debug`` (or
+``PE_RLHF_DEBUG=1 python recipes/<method>/train.py ...``) shows the traceback instead. Called as a function,
+``main(argv)`` raises the exception.
 """
 
 from __future__ import annotations
 
+import os
 import sys
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -33,7 +35,7 @@ from pathlib import Path
 
 from omegaconf import DictConfig
 
-from pe_rlhf.errors import OneLineErrorParser, debug_requested, fail
+from pe_rlhf.errors import DEBUG_ENV_VAR, OneLineErrorParser, debug_requested, fail
 from pe_rlhf.evaluation import evaluate, make_policy, print_summary, write_json
 from pe_rlhf.runtime.config_compose import RecipeSchema, store_recipe_configs
 from pe_rlhf.runtime.config_rules import ConfigError
@@ -61,18 +63,30 @@ class RunOptions:
 _SCRIPT_OPTIONS = RunOptions()  # what run_script parsed, for the @hydra.main function it calls
 # load(options, overrides) -> the run's validated config; train(cfg, options) -> the final evaluation
 Loader = Callable[[RunOptions, list[str]], DictConfig]
+# What a user's command, file or machine can make a run raise (programming errors keep their traceback).
+RUNTIME_FAILURES = (ConfigError, OSError, ValueError, FloatingPointError, MemoryError, RuntimeError)
 Trainer = Callable[[DictConfig, RunOptions], dict]
 
 
 def run_command_line(main: Callable[..., object], *args: object) -> None:
-    """Run a recipe script's ``main(*args)`` (the command line is ``sys.argv``): a ConfigError becomes one
-    ``error:`` line and exit code 2 (:func:`fail`), unless ``$PE_RLHF_DEBUG`` asks for the traceback."""
+    """Run a recipe script's ``main(*args)`` (the command line is ``sys.argv``): a ConfigError or a runtime
+    failure becomes one ``error:`` line and exit code 2 (:func:`fail`), unless ``--debug`` or ``$PE_RLHF_DEBUG``
+    asks for the traceback."""
     try:
         main(*args)
-    except ConfigError as e:
-        if debug_requested():
-            raise
-        fail(str(e))
+    except RUNTIME_FAILURES as e:
+        fail_in_one_line(e)
+
+
+def fail_in_one_line(error: BaseException) -> None:
+    """Re-raise ``error`` with ``--debug``/``$PE_RLHF_DEBUG``; else print it as one ``error:`` line and exit 2
+    (a ConfigError as it is, anything else with its type, and where the traceback is)."""
+    if debug_requested():
+        raise error
+    if isinstance(error, ConfigError):
+        fail(str(error))
+    text = str(error) or "(no message)"
+    fail(f"{type(error).__name__}: {text} (--debug shows the traceback)")
 
 
 def option_parser(description: str | None = None, prog: str | None = None) -> RecipeArgumentParser:
@@ -84,6 +98,8 @@ def option_parser(description: str | None = None, prog: str | None = None) -> Re
                         help="also evaluate a registered policy (e.g. idm-mobil) on the same test scenes and "
                              "print both in the final table")
     parser.add_argument("--resume", default=None, metavar="DIR", help="continue the run in DIR")
+    parser.add_argument("--debug", action="store_true",
+                        help="show the traceback of an error instead of one line (as PE_RLHF_DEBUG=1)")
     return parser
 
 
@@ -95,6 +111,8 @@ def parse_command_line(argv: list[str], description: str | None = None) -> tuple
                and not _is_number(a)]
     if unknown:
         parser.error(f"unrecognized arguments: {' '.join(unknown)}")
+    if args.debug:  # one switch for every layer below (errors.debug_requested reads it)
+        os.environ[DEBUG_ENV_VAR] = "1"
     if args.compare and args.compare not in registered_policies():  # fail now, not after training
         parser.error(f"--compare {args.compare!r}: allowed: {sorted(registered_policies())}")
     return RunOptions(args.out, args.compare, args.resume), rest
@@ -139,10 +157,8 @@ def run_script(task: Callable[[], object], *, schema: RecipeSchema, load: Loader
         sys.argv = [sys.argv[0], *rest]
         store_recipe_configs(schema)  # its profile group, whichever family load composed last
         task()
-    except ConfigError as e:
-        if debug_requested():
-            raise
-        fail(str(e))
+    except RUNTIME_FAILURES as e:
+        fail_in_one_line(e)
 
 
 def hydra_task(cfg: DictConfig, *, finish: Callable[[DictConfig, list[str]], DictConfig], train: Trainer) -> dict:
@@ -153,12 +169,9 @@ def hydra_task(cfg: DictConfig, *, finish: Callable[[DictConfig, list[str]], Dic
 
     overrides = list(HydraConfig.get().overrides.task) if HydraConfig.initialized() else []
     try:
-        cfg = finish(cfg, overrides)
-    except ConfigError as e:
-        if debug_requested():
-            raise
-        fail(str(e))
-    return train(cfg, _SCRIPT_OPTIONS)
+        return train(finish(cfg, overrides), _SCRIPT_OPTIONS)
+    except RUNTIME_FAILURES as e:  # inside Hydra's job: its own handler would print the traceback
+        fail_in_one_line(e)
 
 
 def report_final(out: Path, name: str, final: dict, compare: str | None, cfg) -> None:

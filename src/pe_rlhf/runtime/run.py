@@ -5,7 +5,8 @@ finish that every recipe shares.
 
 1. with ``resume``, the newest checkpoint (:mod:`pe_rlhf.runtime.checkpoint`) is loaded into the learner's
    modules, optimisers and replay buffers, its env config checked (:func:`check_resumable`) and the rows
-   ``metrics.csv`` holds after it dropped (they are logged again);
+   ``metrics.csv`` holds after it dropped (they are logged again); with no complete checkpoint yet (a run killed
+   before its first), the fresh learner replays its journal from frame 0 (:meth:`Learner.replay_journal`);
 2. a fresh run's ``pretrain`` row at step 0, when the learner has one (HG-DAgger, IWR: BC on demonstrations);
 3. each batch the learner yields (frames collected online, or a round of offline updates) goes to its
    ``learn``, which returns the row; every ``eval_every`` units of progress a deterministic evaluation on
@@ -13,7 +14,7 @@ finish that every recipe shares.
    with an evaluation, and the last); every ``checkpoint_every`` (or when the learner asks) a checkpoint;
 4. a non-finite loss, gradient or parameter (``FloatingPointError``): a checkpoint of what there is, and the
    error, saying where it is;
-5. the finish: a last checkpoint, the final evaluation with the learner's ``summary``, ``actor.pt``.
+5. the finish: a last checkpoint, the final evaluation with the learner's ``summary``, ``actor.safetensors``.
 
 With ``actor_selection.every_frames`` (a config group; 0 or absent: off) the actor is also scored every that many
 units on train scenes, and the best snapshot, not the last, becomes the run's actor
@@ -30,12 +31,16 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
+from pe_rlhf import durable
 from pe_rlhf.evaluation import TorchRLPolicyAdapter, evaluate
 from pe_rlhf.runtime.actor_selection import SELECTED_MODULE, ActorSelection
-from pe_rlhf.runtime.checkpoint import CheckpointMismatch, find_checkpoint, load_checkpoint, save_checkpoint
+from pe_rlhf.runtime.buffer_rows import drop_non_finite_rows
+from pe_rlhf.runtime.checkpoint import (CheckpointError, CheckpointMismatch, find_checkpoint, list_checkpoints,
+                                        load_checkpoint, save_checkpoint)
+from pe_rlhf.runtime.resume_changes import optimizer_settings, restore_optimizer_settings
 from pe_rlhf.threads import torch_threads
 
-ACTOR_FILE = "actor.pt"
+ACTOR_FILE = "actor.safetensors"  # weights only; runs from before it have actor.pt (still loaded)
 EVAL_KEYS = ("episodic_return", "success_rate", "safety_violation", "travel_distance", "travel_velocity",
              "overtake_count")
 
@@ -44,7 +49,7 @@ class Learner:
     """What a method plugs into :class:`Run`; the hooks defined here are optional.
 
     A learner has ``name`` (the progress bar's label), ``env_config`` (its :class:`~pe_rlhf.envs.DrivingConfig`),
-    ``actor`` (evaluated deterministically, saved as ``actor.pt``), ``progress`` (frames, or updates offline: the
+    ``actor`` (evaluated deterministically, saved as ``actor.safetensors``), ``progress`` (frames, or updates offline: the
     step of rows and checkpoints), and ``batches()`` (the work, one item per ``learn``; it stops when the run is
     complete), ``learn(batch)`` (returns the batch's row of metrics), ``checkpoint_objects(checkpoint=None)``
     (``modules``, ``optimizers`` and ``replay_buffers`` to save, or to load ``checkpoint`` into),
@@ -76,6 +81,11 @@ class Learner:
 
     def saved(self, step: int) -> None:
         """After each checkpoint, at ``step``."""
+
+    def replay_journal(self, step: int) -> int:
+        """Queue what the learner journaled from ``step`` on to be learned first; returns the progress it reaches
+        (``step``: nothing journaled, the default)."""
+        return step
 
     def postfix(self, row: dict[str, float]) -> dict:
         """The progress bar's postfix."""
@@ -219,17 +229,17 @@ class Run:
         """Load the newest checkpoint into the learner and the run."""
         checkpoint = find_checkpoint(self.checkpoint_dir)
         if checkpoint is None:
-            raise FileNotFoundError(f"no complete checkpoint under {self.checkpoint_dir}")
-        try:
-            state = load_checkpoint(checkpoint, **self.checkpoint_objects(checkpoint))
-        except CheckpointMismatch as e:
-            if SELECTED_MODULE not in e.missing + e.extra:
-                raise
-            was, now = ("off", "on") if self.selection is not None else ("on", "off")
-            raise ValueError(f"cannot resume from {checkpoint}: it was written with actor_selection {was}, this run "
-                             f"has it {now}; a run picks its actor over the whole run, so resume with the run's own "
-                             "actor_selection.every_frames (its config.yaml value)") from None
+            self.resume_from_start(out_dir)
+            return
+        objects = self.checkpoint_objects(checkpoint)
+        configured = optimizer_settings(objects.get("optimizers", {}))  # this run's config, not the checkpoint's
+        checkpoint, state = self.load_intact(checkpoint, objects, out_dir)
         check_resumable(state.get("run"), self.run_info(), checkpoint)
+        restore_optimizer_settings(objects.get("optimizers", {}), configured)  # optim.lr on --resume: applied
+        for name, buffer in self.checkpoint_objects().get("replay_buffers", {}).items():
+            dropped = drop_non_finite_rows(buffer)  # such a row would stop every update again
+            if dropped:
+                print(f"{out_dir}: dropped {dropped} row(s) holding NaN or inf from replay buffer {name!r}", flush=True)
         if self.selection is not None:
             self.selection.load_state_dict(state["actor_selection"])
         self.saved_step, self.iterations = int(state["step"]), int(state.get("iterations", 0))
@@ -239,7 +249,41 @@ class Run:
         self.learner.load_state_dict(state)
         if self.done:  # otherwise the re-evaluation looks like training that did nothing
             print(f"{out_dir}: the run was already complete ({self.progress} of {self.total} {self.learner.unit}s); "
-                  "evaluating it again (final_eval.json, actor.pt and the plots are rewritten)", flush=True)
+                  "evaluating it again (final_eval.json, the actor and the plots are rewritten)", flush=True)
+
+    def load_intact(self, checkpoint: Path, objects: dict, out_dir: Path) -> tuple[Path, dict]:
+        """Load ``checkpoint`` into ``objects``; when it is damaged (truncated, corrupt), the newest intact earlier
+        one, saying so. Returns the checkpoint loaded and its state."""
+        candidates = [checkpoint, *(p for p in reversed(list_checkpoints(checkpoint.parent)) if p.name < checkpoint.name)]
+        for candidate in candidates:
+            try:
+                state = load_checkpoint(candidate, **objects)
+            except CheckpointError as e:
+                if candidate == candidates[-1]:
+                    raise
+                print(f"{out_dir}: {e}; trying the checkpoint before it", flush=True)
+                continue
+            except CheckpointMismatch as e:
+                if SELECTED_MODULE not in e.missing + e.extra:
+                    raise
+                was, now = ("off", "on") if self.selection is not None else ("on", "off")
+                raise ValueError(f"cannot resume from {candidate}: it was written with actor_selection {was}, this "
+                                 f"run has it {now}; a run picks its actor over the whole run, so resume with the "
+                                 "run's own actor_selection.every_frames (its config.yaml value)") from None
+            if candidate != checkpoint:
+                print(f"{out_dir}: resuming from the intact {candidate.name}; what came after it is collected again",
+                      flush=True)
+            return candidate, state
+        raise AssertionError("unreachable")
+
+    def resume_from_start(self, out_dir: Path) -> None:
+        """No checkpoint is complete yet (killed before the first): the fresh learner (same seed, same
+        initial weights) replays what its journal holds from frame 0; with nothing journaled the run starts over."""
+        reached = self.learner.replay_journal(0)
+        self.logger.truncate_after(0)  # every row is logged again
+        what = (f"replaying the journal's {reached} {self.learner.unit}s from the start" if reached
+                else "nothing was journaled either: the run starts over")
+        print(f"{out_dir}: no complete checkpoint yet; {what}", flush=True)
 
     def stop_on_error(self, error: FloatingPointError) -> FloatingPointError:
         """Stop the learner, checkpoint what there is, and return the error to raise, saying where it is."""
@@ -249,10 +293,12 @@ class Run:
             return FloatingPointError(f"{error} (no checkpoint directory: nothing saved)")
         path = self.save()
         return FloatingPointError(f"{error}. Saved checkpoint {path} ({self.learner.unit} {self.progress}, everything "
-                                  "collected included); fix the cause (e.g. a lower optim.lr) and --resume")
+                                  f"collected included). `--resume {self.checkpoint_dir.parent}` drops the replay rows holding NaN "
+                                  "or inf (bad data); if the loss diverged on finite data, resume with a lower learning "
+                                  f"rate, e.g. `--resume {self.checkpoint_dir.parent} optim.lr=<lower>` (a resume applies it)")
 
     def finish(self, out_dir: Path) -> dict:
-        """The learner stopped, a last checkpoint, the final evaluation with the learner's summary, ``actor.pt``."""
+        """The learner stopped, a last checkpoint, the final evaluation with the learner's summary, the actor."""
         self.learner.stop()
         if self.checkpoint_dir is not None and self.progress > self.saved_step:
             self.save()
@@ -269,8 +315,14 @@ class Run:
         final.update(self.learner.summary(out_dir))
         if self.seconds:
             final["training"].update(wall_time_s=self.wall_time(), **{f"{k}_s": v for k, v in self.seconds.items()})
-        torch.save({k: v.detach().cpu() for k, v in actor.state_dict().items()}, out_dir / ACTOR_FILE)
+        save_weights(actor, out_dir / ACTOR_FILE)
         return final
+
+
+def save_weights(module: torch.nn.Module, path: Path) -> Path:
+    """``module``'s state dict as safetensors at ``path``, atomically: a temp file renamed over it, so a reader sees
+    the old file or the new one, and a symlink at ``path`` is replaced, never written through."""
+    return durable.save_tensors(path, module.state_dict())
 
 
 def next_multiple(progress: float, every: int) -> float:

@@ -44,7 +44,7 @@ pytestmark = [pytest.mark.usefixtures("one_thread_module"),
               pytest.mark.filterwarnings("ignore::FutureWarning"), pytest.mark.filterwarnings("ignore::UserWarning")]
 
 IL_METHODS = ("bc", "cql", "gail", "hg_dagger", "iwr")
-OUTPUTS = ("config.yaml", "metrics.csv", "final_eval.json", "learning_curves.png", "actor.pt")
+OUTPUTS = ("config.yaml", "metrics.csv", "final_eval.json", "learning_curves.png", "actor.safetensors")
 SIX_METRICS = ("episodic_return", "success_rate", "safety_violation", "travel_distance", "travel_velocity",
                "overtake_count")
 DEMO_STEPS = 200  # the smoke profile's data.steps

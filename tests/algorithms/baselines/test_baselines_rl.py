@@ -37,7 +37,7 @@ pytestmark = [pytest.mark.usefixtures("one_thread_module"),
 
 ROOT = Path(__file__).resolve().parents[3]
 SMOKE_FRAMES = 300
-OUTPUTS = ("config.yaml", "metrics.csv", "final_eval.json", "learning_curves.png", "actor.pt")
+OUTPUTS = ("config.yaml", "metrics.csv", "final_eval.json", "learning_curves.png", "actor.safetensors")
 SIX_METRICS = ("episodic_return", "success_rate", "safety_violation", "travel_distance", "travel_velocity",
                "overtake_count")
 # SAC-Lag runs with cost limit 0 and a large step, so that every training cost moves lambda visibly.

@@ -145,7 +145,7 @@ def test_smoke_training_with_multisync_writes_finite_metrics(tmp_path):
     assert float(rows[0]["train/takeover_rate"]) == 1.0  # warm-up: 50 forced steps per worker
     assert any(r.get("loss/qvalue") for r in rows[1:])
     assert final["training"]["frames"] == 300 and final["training"]["online_frames"] == 200
-    assert (tmp_path / "checkpoints").is_dir() and (tmp_path / "actor.pt").exists()
+    assert (tmp_path / "checkpoints").is_dir() and (tmp_path / "actor.safetensors").exists()
 
 
 # -- collector.backend=ray on a real local Ray instance --------------------------------------------

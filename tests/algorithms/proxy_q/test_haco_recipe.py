@@ -36,4 +36,4 @@ def test_smoke_run_executes_only_the_mentor_in_takeovers(tmp_path):
     assert not saved.physics.enabled and not saved.selector.enabled
     written = json.loads((tmp_path / "final_eval.json").read_text())
     assert written["success_rate"] == final["success_rate"]
-    assert (tmp_path / "actor.pt").is_file()
+    assert (tmp_path / "actor.safetensors").is_file()

@@ -13,6 +13,7 @@ import pytest
 import torch
 from _scripts import load_script
 
+from pe_rlhf.durable import load_tensors
 from pe_rlhf.runtime.config_rules import ConfigError
 from pe_rlhf.algorithms.proxy_q import builders
 from pe_rlhf.algorithms.proxy_q.config import load_config
@@ -56,7 +57,7 @@ def test_acting_on_a_synced_copy_reproduces_the_shared_actor_run(tmp_path, monke
         assert a.data_ptr() != b.data_ptr() and torch.equal(a, b)  # ...holding the learner's last weights
     assert _rows(tmp_path / "copied") == _rows(tmp_path / "shared")
     assert copied["success_rate"] == shared["success_rate"]
-    actor = torch.load(tmp_path / "copied" / "actor.pt", weights_only=True)
+    actor = load_tensors(tmp_path / "copied" / "actor.safetensors")[0]
     assert all(v.device.type == "cpu" for v in actor.values())
 
 
@@ -93,7 +94,7 @@ def test_a_run_with_the_learner_on_cuda_trains_and_saves_a_cpu_actor(tmp_path):
     rows = list(csv.DictReader(open(tmp_path / "run" / "metrics.csv")))
     losses = [float(v) for r in rows for k, v in r.items() if k.startswith("loss/") and v not in ("", None)]
     assert losses and all(torch.isfinite(torch.tensor(losses)))
-    actor = torch.load(tmp_path / "run" / "actor.pt", weights_only=True)
+    actor = load_tensors(tmp_path / "run" / "actor.safetensors")[0]
     assert all(v.device.type == "cpu" for v in actor.values())
     final = train(tmp_path / "run", "collector.total_frames=150", resume=True)
     assert final["training"]["frames"] == 150

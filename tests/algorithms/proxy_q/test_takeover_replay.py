@@ -78,7 +78,7 @@ def test_a_smoke_run_with_the_share_trains_and_resumes(tmp_path):
     out = tmp_path / "run"
     recipe = load_pe_rlhf_recipe()
     result = recipe.main(["profile=smoke", "eval.video=false", "replay_buffer.takeover_share=0.5", "--out", str(out)])
-    assert (out / "actor.pt").exists() and "success_rate" in result
+    assert (out / "actor.safetensors").exists() and "success_rate" in result
     saved = find_checkpoint(out / "checkpoints") / "buffer_replay"
     assert (saved / "takeover").is_dir() and (saved / "agent").is_dir()
     recipe.main(["--resume", str(out), "collector.total_frames=400"])

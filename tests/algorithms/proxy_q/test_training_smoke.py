@@ -9,6 +9,8 @@ import math
 import pytest
 from _scripts import load_pe_rlhf_recipe
 
+from pe_rlhf.durable import load_tensors
+
 SMOKE_RUN = ["profile=smoke", "--compare", "idm-mobil"]
 
 
@@ -28,7 +30,7 @@ def _logged(out, final) -> tuple:
 
 def test_smoke_run_writes_every_output(smoke_run):
     tmp_path, final = smoke_run
-    for name in ("config.yaml", "metrics.csv", "final_eval.json", "training_curves.png", "actor.pt",
+    for name in ("config.yaml", "metrics.csv", "final_eval.json", "training_curves.png", "actor.safetensors",
                  "test_episode.gif"):
         assert (tmp_path / name).exists(), name
     rows = list(csv.DictReader(open(tmp_path / "metrics.csv")))
@@ -142,7 +144,7 @@ def test_actor_selection_in_the_recipe_keeps_the_picked_checkpoints_actor(tmp_pa
     assert sorted(map(int, picking["scores"])) == [100, 200, 300] and picking["split"] == "train"
     assert picking["picked_step"] in (100, 200, 300)
     assert final["last_actor"]["episodes"] == final["episodes"] == 1
-    saved = torch.load(tmp_path / "actor.pt", weights_only=True)
+    saved = load_tensors(tmp_path / "actor.safetensors")[0]
     at_pick = load_actor(tmp_path, checkpoint=tmp_path / "checkpoints" / f"ckpt_{picking['picked_step']:09d}")
     for k, v in at_pick.state_dict().items():
         assert torch.equal(saved[k], v), k

@@ -48,7 +48,7 @@ POLICY_KEYS = ("action_log_prob", "loc", "scale")  # on-policy: the behaviour po
 
 
 def make_stochastic_actor(obs_dim: int, hidden) -> ProbabilisticActor:
-    """:func:`~pe_rlhf.modules.make_actor`'s network (same ``state_dict``, so ``actor.pt`` loads into it)
+    """:func:`~pe_rlhf.modules.make_actor`'s network (same ``state_dict``, so ``actor.safetensors`` loads into it)
     writing ``action_log_prob`` as well, which the on-policy losses read as the behaviour's log-prob."""
     base = make_actor(obs_dim, hidden=tuple(hidden))
     net, sampler = base.module[0], base.module[-1]

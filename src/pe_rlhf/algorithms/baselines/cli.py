@@ -13,7 +13,7 @@ function (tests, ``pe-rlhf sweep``), over ``recipes/<method>/config.yaml``.
 
 Outputs in the run folder: ``config.yaml`` (the resolved config), ``metrics.csv``, ``final_eval.json``
 (the six metrics on ``eval.split`` with deterministic actions, plus training totals),
-``learning_curves.png`` (+ ``testing_curves.png`` with periodic evaluations), ``actor.pt`` and
+``learning_curves.png`` (+ ``testing_curves.png`` with periodic evaluations), ``actor.safetensors`` and
 ``checkpoints/``; the imitation methods also ``demos/`` when ``data.path`` is null (the recorded
 demonstrations).
 
@@ -44,6 +44,7 @@ from pe_rlhf.runtime import recipe
 from pe_rlhf.runtime.config import save_config, to_container
 from pe_rlhf.runtime.metrics_logger import CSV_NAME, MetricsLogger
 from pe_rlhf.runtime.recipe import RunOptions, report_final
+from pe_rlhf.runtime.run_folder import hold_run_folder
 
 FINAL_EVAL = "final_eval.json"
 
@@ -90,12 +91,13 @@ def _validated(cfg: DictConfig, overrides: list[str], method: str) -> DictConfig
 def run(method: str, cfg: DictConfig, options: RunOptions = RunOptions()) -> dict:
     """Train ``method`` with a validated ``cfg`` into ``options.out`` (or continue the run in ``options.resume``),
     write the outputs, print the final table."""
+    out = Path(options.resume) if options.resume else run_dir(cfg, method, options.out)
+    with hold_run_folder(out):  # one writer per run folder, for the run's whole life
+        return _run_in(out, method, cfg, options)
+
+
+def _run_in(out: Path, method: str, cfg: DictConfig, options: RunOptions) -> dict:
     name = METHODS[method].name
-    if options.resume:
-        out = Path(options.resume)
-    else:
-        out = run_dir(cfg, method, options.out)
-        out.mkdir(parents=True, exist_ok=True)
     save_config(cfg, out / "config.yaml", algorithm_name(method))  # on --resume: with the overrides it continued under
     lg = cfg.logger
     with MetricsLogger(out, csv=bool(lg.csv), wandb=bool(lg.wandb), wandb_mode=str(lg.wandb_mode),

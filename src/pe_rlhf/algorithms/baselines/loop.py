@@ -16,7 +16,7 @@ logging, ``--resume``, finish, shared with every method); its batches and :meth:
    (``eval/*``); every ``checkpoint.every_frames`` a checkpoint (:mod:`pe_rlhf.runtime.checkpoint`:
    networks, optimisers, ``lambda``, the replay buffer, RNG states, counters), which ``--resume`` continues.
 
-The run ends with a checkpoint, the final evaluation and ``actor.pt`` (``weights_only`` loadable into
+The run ends with a checkpoint, the final evaluation and ``actor.safetensors`` (loadable into
 :func:`pe_rlhf.modules.make_actor`). The offline methods (BC, CQL) never collect: :func:`train_baseline`
 hands them to :mod:`pe_rlhf.algorithms.baselines.offline`, whose learner the same run drives.
 """
@@ -166,7 +166,7 @@ def build_learner(cfg, obs_dim: int, run_dir=None):
 
 
 def load_baseline_actor(run_dir: str | Path):
-    """The trained actor of a finished baseline run: ``config.yaml`` for the sizes, ``actor.pt`` loaded
+    """The trained actor of a finished baseline run: ``config.yaml`` for the sizes, the actor file loaded
     with ``weights_only=True`` into :func:`pe_rlhf.modules.make_actor` (evaluate it with
     :class:`pe_rlhf.evaluation.TorchRLPolicyAdapter`)."""
     from pe_rlhf.algorithms.proxy_q.trained_policy import load_run_actor

@@ -11,7 +11,7 @@ into the same command line (:mod:`pe_rlhf.algorithms.baselines.cli`).
 
 Outputs in the run folder: ``config.yaml`` (resolved, with the method's registry name as ``algorithm:``),
 ``metrics.csv``, ``checkpoints/``, ``final_eval.json`` (with ``"algorithm"``), ``training_curves.png``,
-``actor.pt``, ``test_episode.gif`` (with ``eval.video``) and ``reference_<policy>.json`` (with ``--compare``).
+``actor.safetensors``, ``test_episode.gif`` (with ``eval.video``) and ``reference_<policy>.json`` (with ``--compare``).
 """
 
 from __future__ import annotations
@@ -29,9 +29,13 @@ from pe_rlhf.runtime.config import save_config, to_container
 from pe_rlhf.runtime.metrics_logger import MetricsLogger
 from pe_rlhf.runtime.plots import plot_learning_curves
 from pe_rlhf.runtime.recipe import RunOptions, report_final
+from pe_rlhf.runtime.buffer_rows import check_buffer_fits
+from pe_rlhf.runtime.resume_changes import announce_changes
+from pe_rlhf.runtime.run_folder import hold_run_folder
+from pe_rlhf.runtime.world import obs_dim
 from pe_rlhf.algorithms.proxy_q.config import algorithm_name, finish_config, load_config, method_name
 from pe_rlhf.algorithms.proxy_q.config_schema import PROXY_Q
-from pe_rlhf.algorithms.proxy_q.trainer import train
+from pe_rlhf.algorithms.proxy_q.trainer import RESUME_REFUSED, train
 
 
 def main(argv: list[str] | None = None, *, config_path: str | Path | None = None,
@@ -67,12 +71,20 @@ def run(cfg: DictConfig, options: RunOptions = RunOptions()) -> dict:
     """Train a validated ``cfg`` into ``options.out`` (or continue the run in ``options.resume``), write the
     outputs, print the final table."""
     method = method_name(cfg)
-    if options.resume:
-        out = Path(options.resume)
-    else:
-        out = Path(options.out or cfg.logger.out_dir or f"runs/{method.lower()}-{time.strftime('%Y%m%d-%H%M%S')}")
-        out.mkdir(parents=True, exist_ok=True)
-        save_config(cfg, out / "config.yaml", algorithm_name(cfg))
+    out = Path(options.resume) if options.resume else \
+        Path(options.out or cfg.logger.out_dir or f"runs/{method.lower()}-{time.strftime('%Y%m%d-%H%M%S')}")
+    rb = cfg.replay_buffer  # refused before anything is written: replay (2 storages when balanced) and warm-up
+    check_buffer_fits("replay_buffer.size", int(rb.size), 8 * obs_dim(cfg) + 256,
+                      3 if rb.get("takeover_share") is not None else 2, saved_rows=int(cfg.collector.total_frames),
+                      checkpoints=int(cfg.checkpoint.keep) + 1, folder=out)
+    with hold_run_folder(out):  # one writer per run folder, for the run's whole life
+        return _run_in(out, cfg, options, method)
+
+
+def _run_in(out: Path, cfg: DictConfig, options: RunOptions, method: str) -> dict:
+    if options.resume:  # each changed setting applied (and said) or refused in one line; config.yaml follows
+        announce_changes(load_config(out / "config.yaml", apply_profile=False), cfg, RESUME_REFUSED, str(out))
+    save_config(cfg, out / "config.yaml", algorithm_name(cfg))
     resume = bool(options.resume)
     with MetricsLogger(out, csv=bool(cfg.logger.csv), wandb=bool(cfg.logger.wandb),
                        wandb_mode=str(cfg.logger.wandb_mode),

@@ -13,10 +13,13 @@ from __future__ import annotations
 import warnings
 from pathlib import Path
 
-import torch
 
+from pe_rlhf import durable
+from pe_rlhf.runtime.run import ACTOR_FILE
 from pe_rlhf.runtime.world import obs_dim
 from pe_rlhf.algorithms.proxy_q import model_builders as builders
+
+LEGACY_ACTOR_FILE = "actor.pt"  # a run's actor before safetensors (torch.save; loaded with weights_only=True)
 
 
 def _baseline_method(run_dir: Path) -> str | None:
@@ -62,23 +65,40 @@ def run_observation_size(run_dir: str | Path) -> int:
 
 def load_run_actor(run_dir: str | Path):
     """The trained actor of a run folder of either kind: :func:`load_actor` for a PE-RLHF/HACO/HAIM-DRL
-    run; for a baseline run its ``actor.pt`` (``weights_only=True``) in :func:`pe_rlhf.modules.make_actor`
+    run; for a baseline run its actor (``actor.safetensors``, or a legacy ``actor.pt`` loaded with ``weights_only=True``) in :func:`pe_rlhf.modules.make_actor`
     sized by its saved ``config.yaml`` (``loss.hidden``, the ``env`` group's observation)."""
     run_dir = Path(run_dir)
     if _baseline_method(run_dir) is None:
         return load_actor(run_dir)
     from pe_rlhf.modules import make_actor
 
-    if not (run_dir / "actor.pt").exists():
-        raise FileNotFoundError(f"{run_dir}: the baseline run has no actor.pt (it has not finished)")
+    final = actor_file(run_dir)
+    if final is None:
+        raise FileNotFoundError(f"{run_dir}: the baseline run has no {LEGACY_ACTOR_FILE} or {ACTOR_FILE} (it has "
+                                "not finished)")
     cfg = _run_config(run_dir)
     actor = make_actor(obs_dim(cfg), hidden=tuple(cfg.loss.hidden))
-    actor.load_state_dict(torch.load(run_dir / "actor.pt", weights_only=True, map_location="cpu"))
+    actor.load_state_dict(load_weights(final))
     return actor
 
 
+def actor_file(run_dir: Path) -> Path | None:
+    """A finished run's actor: ``actor.safetensors``, or a run's from before it, ``actor.pt``; None if neither."""
+    for name in (ACTOR_FILE, LEGACY_ACTOR_FILE):
+        if (run_dir / name).is_file():
+            return run_dir / name
+    return None
+
+
+def load_weights(path: Path) -> dict:
+    """A state dict saved by a run (safetensors, or a legacy torch file loaded with ``weights_only=True``);
+    ValueError in one line naming ``path`` and what is wrong when it is truncated, corrupt or not plain tensor data
+    (never torch's advice to load unsafely)."""
+    return durable.load_tensors(path)[0]
+
+
 def load_actor(run_dir: str | Path, checkpoint: str | Path | None = None):
-    """The actor of the run in ``run_dir``: its final ``actor.pt`` if the run finished, else the actor in
+    """The actor of the run in ``run_dir``: its final actor (:func:`actor_file`) if the run finished, else the actor in
     its newest checkpoint; with ``checkpoint`` (a ``ckpt_<step>`` folder), that checkpoint's actor. Reads
     ``config.yaml`` for the network sizes; loads with ``weights_only=True``.
     """
@@ -90,12 +110,12 @@ def load_actor(run_dir: str | Path, checkpoint: str | Path | None = None):
         raise FileNotFoundError(f"{run_dir} is not a training run folder (no config.yaml)")
     cfg = load_config(run_dir / "config.yaml", apply_profile=False)
     actor = builders.build_actor(cfg)
-    final = run_dir / "actor.pt"
-    if checkpoint is None and final.exists():
+    final = actor_file(run_dir)
+    if checkpoint is None and final is not None:
+        state = load_weights(final)
         try:
-            state = torch.load(final, weights_only=True, map_location="cpu")
             actor.load_state_dict(state)
-        except Exception as e:  # a corrupt or foreign file: say which
+        except Exception as e:  # a foreign file: say which
             raise ValueError(f"cannot load the actor from {final}: {type(e).__name__}: {str(e)[:200]}") from None
         return actor
     loss, _ = builders.build_loss(cfg, actor)

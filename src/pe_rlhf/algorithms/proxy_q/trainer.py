@@ -64,6 +64,46 @@ from pe_rlhf.transforms import InterventionTransform, RealtimePacing
 if TYPE_CHECKING:
     from pe_rlhf.runtime.journal import JournalEntry
 
+# Settings a --resume cannot change (pe_rlhf.runtime.resume_changes): the checkpoint's state would override them, or
+# the saved data was cut by them; every other change is applied (and announced).
+RESUME_REFUSED = {
+    "seed": "the checkpoint's RNG states continue the run's random streams",
+    "profile": "a resume composes the run's config.yaml without a profile; set the fields themselves",
+    "env": "the networks learned that world",
+    "mentor": "the checkpoint holds that mentor's state",
+    "collector.frames_per_batch": "the journal's batches and pending episodes are cut at the run's size",
+    "collector.warmup_steps": "the warm-up data and the fitted ensemble are the run's",
+    "collector.warmup_policy": "the warm-up data are the run's",
+    "collector.backend": "the collection in progress belongs to the run's backend",
+    "collector.num_workers": "the collection in progress belongs to the run's workers",
+    "replay_buffer.takeover_share": "the buffers' layout (takeover rows apart or not) is the checkpoint's",
+    "loss.hidden": "the checkpoint's networks have the run's sizes",
+    "loss.num_qvalue_nets": "the checkpoint's networks are the run's",
+    "loss.num_intervention_qvalue_nets": "the checkpoint's networks are the run's",
+    "loss.num_disturbance_qvalue_nets": "the checkpoint's networks are the run's",
+    "loss.fused_critics": "the checkpoint's critics have the run's layout",
+    "loss.alpha_init": "the checkpoint's alpha continues",
+    "loss.target_entropy": "the checkpoint's loss holds the run's target entropy",
+    "selector.num_members": "the checkpoint's ensemble has the run's size",
+    "selector.hidden": "the checkpoint's ensemble has the run's sizes",
+    "selector.enabled": "the checkpoint's modules are the run's",
+    "disturbance.enabled": "the checkpoint's critics are the run's",
+    "actor_selection": "a run picks its actor over the whole run",
+    "checkpoint.every_frames": lambda was, now: ("0 turns the journal off, and with it the batches it holds"
+                                                 if int(now or 0) == 0 and int(was or 0) > 0 else None),
+}
+
+
+def cut_to(batch, frames: int):
+    """``batch`` without its steps past ``frames`` (the run's last batch after a short pending one: the collector
+    counts whole batches); a ``(workers, T)`` batch is cut along time, to the least ``T`` that covers ``frames``."""
+    if batch.numel() <= frames:
+        return batch
+    if batch.ndim == 1:
+        return batch[:frames]
+    return batch[..., : -(-frames // (batch.numel() // batch.shape[-1]))]
+
+
 class Counters:
     """Cumulative training bookkeeping (saved in checkpoints)."""
 
@@ -238,12 +278,17 @@ class ProxyQLearner(Learner):
         self.restore_actors(state)
         if state.get("collection") is not None:  # the episode in progress at the checkpoint (single backend)
             self.resumed_collection = (state["collection"], state["mentor"])
+        if self.replay_journal(int(state["step"])) > int(state["step"]):  # collection went on: its episode is not
+            self.resumed_collection = None  # the next
+
+    def replay_journal(self, step: int) -> int:
+        """Queue the journal's batches from frame ``step`` on, and the pending file that continues them, to be
+        trained on first; returns the frame they reach (``step`` when there is nothing to replay)."""
         if self.journal is None:
-            return
-        self.journaled = self.journal.entries_after(int(state["step"]))
-        self.journaled_pending = self.journal.pending_at(self.journaled[-1].end if self.journaled else state["step"])
-        if self.journaled or self.journaled_pending is not None:  # collection went on: its episode is not the next
-            self.resumed_collection = None
+            return step
+        self.journaled = self.journal.entries_after(step)
+        self.journaled_pending = self.journal.pending_at(self.journaled[-1].end if self.journaled else step)
+        return max([step] + [e.end for e in self.journaled] + [getattr(self.journaled_pending, "end", step)])
 
     def restore_actors(self, state: dict) -> None:
         """The transform's step count and the mentor's state (multi-worker backends restart theirs)."""
@@ -300,7 +345,7 @@ class ProxyQLearner(Learner):
             self.counters.env_seconds += time.time() - t_env
             if self.done:
                 break
-            yield batch, False
+            yield cut_to(batch, int(self.cfg.collector.total_frames) - int(self.counters.frames)), False
             t_env = time.time()
 
     def learn(self, item) -> dict[str, float]:

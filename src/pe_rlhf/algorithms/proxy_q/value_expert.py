@@ -2,7 +2,7 @@
 
 ``selector.value`` names it:
 
-- ``expert`` (default): the expert shipped with the package, ``pe_rlhf/data/value_expert.pt`` (provenance
+- ``expert`` (default): the expert shipped with the package, ``pe_rlhf/data/value_expert.safetensors`` (provenance
   beside it in ``value_expert.json``: command, config, seed, steps, test success, sha256);
 - ``expert:PATH``: a Q-ensemble file (:func:`~pe_rlhf.modules.save_q_ensemble`, e.g. one written by
   :func:`export_value_expert`), or a run folder (a ``recipes/sac_rs`` baseline run, or a PE-RLHF/HACO run)
@@ -27,13 +27,13 @@ from pe_rlhf.durable import sha256_file
 from pe_rlhf.modules import QEnsemble, load_q_ensemble, q_ensemble_from_critics, save_q_ensemble
 
 VALUE_SOURCES = ("expert", "expert:PATH", "warmup", "forecast")
-PACKAGED_EXPERT = "value_expert.pt"
+PACKAGED_EXPERT = "value_expert.safetensors"
 PROVENANCE_SUFFIX = ".json"
 CRITIC_PREFIXES = ("qvalue_network_params.", "target_qvalue_network_params.")
 
 
 def packaged_expert_path() -> Path:
-    """The expert shipped with the package (``pe_rlhf/data/value_expert.pt``)."""
+    """The expert shipped with the package (``pe_rlhf/data/value_expert.safetensors``)."""
     return Path(str(resources.files("pe_rlhf") / "data" / PACKAGED_EXPERT))
 
 

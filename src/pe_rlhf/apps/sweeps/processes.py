@@ -6,26 +6,57 @@ Each process runs :func:`pe_rlhf.apps.sweeps.execution.run_cell`, the body of a 
 log and resume behave exactly as under Ray: a cell that fails or is stopped is left unfinished and the next
 invocation reruns it (from its newest checkpoint when it has one). A cell still running at the deadline is
 killed; its ``metrics.csv`` shows how far it got.
+
+Cells die with their driver: each runs in a process group of its own, killed whole when the driver stops it, and
+on Linux with the parent-death signal armed, so a driver killed with SIGKILL takes its cells along. A rerun
+never starts a second writer on a live cell: a cell whose folder another process holds
+(:func:`~pe_rlhf.runtime.run_folder.folder_holder`) is reported as failed, "still running", and not started.
 """
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing
 import os
+import signal
+import sys
 import time
 from pathlib import Path
 
-from pe_rlhf.apps.sweeps.cells import Cell, log_path, plan, write_record
+from pe_rlhf.apps.sweeps.cells import Cell, cell_dir, log_path, plan, write_record
 from pe_rlhf.apps.sweeps.execution import THREAD_VARS, SweepReport, run_cell, running_text
+from pe_rlhf.runtime.run_folder import folder_holder
 
 POLL_SECONDS = 1.0
 
 
-def _cell_process(cell: Cell, out: str, threads: int) -> None:
+def _die_with(parent: int) -> None:
+    """This process (and, through its own process group, the driver's clean-up) ends when ``parent`` dies, even by
+    SIGKILL: Linux's parent-death signal. Elsewhere only the driver's clean-up stops a cell."""
+    os.setpgid(0, 0)  # a group of its own: the driver kills the cell with everything it started
+    if sys.platform.startswith("linux"):
+        import ctypes
+
+        pr_set_pdeathsig = 1
+        ctypes.CDLL(None, use_errno=True).prctl(pr_set_pdeathsig, signal.SIGKILL, 0, 0, 0)
+    if os.getppid() != parent:  # the driver died before the signal was armed
+        os._exit(1)
+
+
+def _cell_process(cell: Cell, out: str, threads: int, parent: int) -> None:
+    _die_with(parent)
     for var in THREAD_VARS:  # before torch is imported in this fresh (spawned) interpreter
         os.environ[var] = str(threads)
     os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
     run_cell(cell, out, threads)
+
+
+def _kill_group(process) -> None:
+    """Kill a cell's process and every process in its group (its collector workers), then reap it."""
+    with contextlib.suppress(ProcessLookupError, PermissionError):
+        os.killpg(process.pid, signal.SIGKILL)
+    process.kill()
+    process.join()
 
 
 def _last_line(path: Path) -> str:
@@ -64,8 +95,15 @@ def run_cells_in_processes(cells: list[Cell], out: str | Path, *, max_parallel: 
                 break
             while pending and len(running) < capacity:
                 cell = pending.pop(0)
+                holder = folder_holder(cell_dir(out, cell))
+                if holder is not None:  # a cell of an earlier driver still runs: never a second writer
+                    report.failed[cell.name] = f"still running ({holder}); not started again"
+                    bar.write(f"BUSY   {cell.name}: {report.failed[cell.name]}")
+                    bar.update(1)
+                    continue
                 write_record(out, cell)
-                process = context.Process(target=_cell_process, args=(cell, str(out.resolve()), threads),
+                process = context.Process(target=_cell_process,
+                                          args=(cell, str(out.resolve()), threads, os.getpid()),
                                           name=cell.name, daemon=False)
                 process.start()
                 running[cell.name] = (process, cell, time.monotonic())
@@ -85,8 +123,7 @@ def run_cells_in_processes(cells: list[Cell], out: str | Path, *, max_parallel: 
             time.sleep(POLL_SECONDS if running else 0)
     finally:
         for cell_name, (process, _, _) in running.items():
-            process.kill()
-            process.join()
+            _kill_group(process)
             report.stopped.append(cell_name)
         report.stopped += [c.name for c in pending]
         for cell_name in report.stopped:
