@@ -20,6 +20,7 @@ forecast would not know.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -206,10 +207,26 @@ class SafetyForecastValue(torch.nn.Module):
         self.config = config or SafetyForecastConfig()
 
     def values(self, observation: torch.Tensor, actions: torch.Tensor, env=None) -> torch.Tensor:
+        return self._forecast(actions, env, self.config)
+
+    def repeated_values(self, observation: torch.Tensor, actions: torch.Tensor, env=None) -> torch.Tensor:
+        """As :meth:`values`, each action held for the whole horizon (no recovery): the action as a driver who
+        repeats it at every step will execute it (``HybridActionSelector(persistence=...)``)."""
+        config = dataclasses.replace(self.config, hold=self.config.horizon)
+        return self._forecast(actions, env, config)
+
+    def recovery_value(self, env=None) -> torch.Tensor:
+        """``(1, 1)``: seconds until a failure when the recovery starts now (no hold; the action is not read):
+        what any fallback that brakes at once can reach (``HybridActionSelector(reference=...)``)."""
+        config = dataclasses.replace(self.config, hold=0.0)
+        return self._forecast(torch.zeros(1, 2), env, config)
+
+    @staticmethod
+    def _forecast(actions: torch.Tensor, env, config: SafetyForecastConfig) -> torch.Tensor:
         if env is None:
             raise ValueError("SafetyForecastValue.values needs env= (the simulator to forecast from)")
         acts = actions.reshape(-1, actions.shape[-1]).detach().cpu().numpy()
-        out = [time_to_failure(env, a, self.config) if np.all(np.isfinite(a)) else 0.0 for a in acts]
+        out = [time_to_failure(env, a, config) if np.all(np.isfinite(a)) else 0.0 for a in acts]
         return torch.tensor([out], dtype=torch.float32)
 
 
