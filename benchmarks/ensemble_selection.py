@@ -116,7 +116,8 @@ def measure(mentors: list[str], scenes: list[int], split: str, value: str, epsil
             switch_margins: list[float | None], variance_threshold: float | None = None,
             forecast_hold: float = 1.0, forecast_recovery: str = "route", veto_patience: int = 1,
             imminent_failure: float | None = None, one_lane: bool = False,
-            persistence: list[str] = ("off",), references: list[str] = ("physics",)) -> list[dict]:
+            persistence: list[str] = ("off",), references: list[str] = ("physics",),
+            strict: list[bool] = (False,)) -> list[dict]:
     """Every row (see the module docstring) for every mentor, IDM-MOBIL alone once."""
     world = DrivingConfig(split=split, lane_features=True)
     kind, path = parse_value_source(value)
@@ -131,10 +132,10 @@ def measure(mentors: list[str], scenes: list[int], split: str, value: str, epsil
                         **drive(mentor, scenes, split, world=world, progress=f"{mentor} as-is")})
         for eps in epsilons:
             for margin in switch_margins:
-                for persist, reference in [(p, r) for p in persistence for r in references]:
+                for persist, reference, st in [(p, r, t) for p in persistence for r in references for t in strict]:
                     selector = HybridActionSelector(ensemble, eps, variance_threshold, switch_margin=margin,
                                                     veto_patience=veto_patience, imminent_failure=imminent_failure,
-                                                    persistence=persist, reference=reference)
+                                                    persistence=persist, reference=reference, strict_in_danger=st)
                     label = f"hybrid eps={eps:g} margin={'none' if margin is None else f'{margin:g}'}"
                     if veto_patience > 1:
                         label += f" patience={veto_patience} imminent={imminent_failure}"
@@ -142,8 +143,11 @@ def measure(mentors: list[str], scenes: list[int], split: str, value: str, epsil
                         label += f" persistence={persist}"
                     if reference != "physics":
                         label += f" reference={reference}"
+                    if st:
+                        label += " strict"
                     results.append({"mentor": mentor, "row": label, "epsilon_select": eps, "switch_margin": margin,
-                                    "persistence": persist, "reference": reference, **drive(mentor, scenes, split, selector, world=world,
+                                    "persistence": persist, "reference": reference,
+                                    "strict_in_danger": st, **drive(mentor, scenes, split, selector, world=world,
                                                                     progress=f"{mentor} {label}")})
     return results
 
@@ -225,6 +229,8 @@ def main(argv=None) -> list[dict]:
     parser.add_argument("--references", nargs="+", choices=["physics", "physics_or_recovery"],
                         default=["physics"], help="selector.reference with --value forecast: what the mentor is "
                         "compared with (physics' action, or the better of it and braking at once)")
+    parser.add_argument("--strict", nargs="+", choices=["off", "on"], default=["off"],
+                        help="selector.strict_in_danger with --value forecast: no slack where physics itself fails")
     parser.add_argument("--hold-one-lane", action="store_true", help="selector.forecast_hold_one_lane: the hold "
                         "ends once the car has moved one lane width sideways")
     parser.add_argument("--forecast-recovery", choices=["route", "lanes"], default="route",
@@ -248,7 +254,7 @@ def main(argv=None) -> list[dict]:
         results = measure(args.mentors, scenes, args.split, args.value, args.epsilons, args.switch_margins,
                       args.variance_threshold, args.forecast_hold, args.forecast_recovery,
                           args.veto_patience, args.imminent_failure, args.hold_one_lane, args.persistence,
-                          args.references)
+                          args.references, [s == "on" for s in args.strict])
     print(format_table(results))
     print(f"{len(scenes)} {args.split} scenes ({scenes[0]}-{scenes[-1]}), value {args.value}, "
           f"{time.time() - t:.0f} s", flush=True)

@@ -268,8 +268,13 @@ class TableForecast(torch.nn.Module):
     def repeated_values(self, obs, acts):
         return torch.tensor([[self.repeated[round(float(a), 3)] for a in acts[..., 0].reshape(-1)]])
 
+    horizon = 3.0
+
     def recovery_value(self, env=None):
         return torch.tensor([[self.recovery]])
+
+    def recovery_action(self, env=None):
+        return torch.tensor([-9.0, -1.0])  # marked: a steering no policy proposes
 
 
 def test_a_latched_veto_holds_until_the_repeated_action_is_safe():
@@ -296,7 +301,24 @@ def test_the_recovery_reference_compares_with_braking_at_once_when_physics_looks
     plain = HybridActionSelector(TableForecast({}, recovery=3.0), -0.5)
     best = HybridActionSelector(TableForecast({}, recovery=3.0), -0.5, reference="physics_or_recovery")
     assert bool(plain.select(obs, mentor, phy)[1]) and not bool(best.select(obs, mentor, phy)[1])
-    assert best.judge(obs, mentor, phy)[4].item() == pytest.approx(3.0)  # the value it compared with
+    hybrid, _, _, _, reference = best.judge(obs, mentor, phy)
+    assert reference.item() == pytest.approx(3.0)  # the value it compared with
+    assert hybrid.tolist() == [-9.0, -1.0]  # and braking at once is what runs in physics' place
+    worse_recovery = HybridActionSelector(TableForecast({}, recovery=0.5), -0.5, reference="physics_or_recovery")
+    hybrid, chosen, _, _, reference = worse_recovery.judge(obs, torch.tensor([0.2, 0.0]), phy)
+    assert not bool(chosen) and hybrid.tolist() == phy.tolist() and reference.item() == pytest.approx(0.9)
+
+
+@pytest.mark.parametrize("mentor, physics, chosen", [
+    (2.6, 3.0, True),  # physics safe over the horizon: the 0.5 s slack applies
+    (1.2, 1.5, False),  # physics itself forecast to fail: no slack, the mentor must be at least as good
+    (1.5, 1.5, True),
+])
+def test_strict_in_danger_removes_the_slack_where_physics_itself_fails(mentor, physics, chosen):
+    sel = HybridActionSelector(TableForecast({}), -0.5, strict_in_danger=True)
+    assert bool(sel.select(torch.zeros(1), torch.tensor([mentor, 0.0]), torch.tensor([physics, 0.0]))[1]) is chosen
+    loose = HybridActionSelector(TableForecast({}), -0.5)
+    assert bool(loose.select(torch.zeros(1), torch.tensor([mentor, 0.0]), torch.tensor([physics, 0.0]))[1])
 
 
 @pytest.mark.parametrize("kwargs, match", [
@@ -309,7 +331,8 @@ def test_invalid_persistence_and_reference_raise(kwargs, match):
         HybridActionSelector(TableForecast({}), -0.5, **kwargs)
 
 
-@pytest.mark.parametrize("kwargs", [{"persistence": "latch"}, {"reference": "physics_or_recovery"}])
+@pytest.mark.parametrize("kwargs", [{"persistence": "latch"}, {"reference": "physics_or_recovery"},
+                                    {"strict_in_danger": True}])
 def test_persistence_and_reference_need_the_forecast(kwargs):
     with pytest.raises(ValueError, match="needs a value source"):
         HybridActionSelector(ExactQ(), -0.5, **kwargs)

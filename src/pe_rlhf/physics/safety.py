@@ -28,7 +28,7 @@ import numpy as np
 import torch
 from highway_env import utils
 
-from pe_rlhf.envs.action import MAX_BRAKING, MAX_STEERING, action_to_controls
+from pe_rlhf.envs.action import MAX_BRAKING, MAX_STEERING, action_to_controls, controls_to_action
 from pe_rlhf.envs.driving_env import ROAD_EDGE_MARGIN  # the env's own off-road test, not a copy of it
 from pe_rlhf.envs.geometry import LANE_WIDTH
 
@@ -220,6 +220,21 @@ class SafetyForecastValue(torch.nn.Module):
         what any fallback that brakes at once can reach (``HybridActionSelector(reference=...)``)."""
         config = dataclasses.replace(self.config, hold=0.0)
         return self._forecast(torch.zeros(1, 2), env, config)
+
+    def recovery_action(self, env=None) -> torch.Tensor:
+        """``(2,)`` float32: the first step of the recovery from now (full braking, steering back along the
+        route): the action a fallback executes where physics' own is forecast worse."""
+        sim = getattr(env, "unwrapped", env)
+        forecast = _Forecast(sim, self.config)
+        state = (np.array(sim.vehicle.position, float), float(sim.vehicle.heading), float(sim.vehicle.speed),
+                 sim.route.project(sim.vehicle.position, sim.route_segment)[0])
+        steering = forecast.recovery_steering(state, None)
+        return torch.as_tensor(controls_to_action(steering, -self.config.recovery_braking))
+
+    @property
+    def horizon(self) -> float:
+        """The forecast's length [s]: the value of an action that fails within it is below this."""
+        return float(self.config.horizon)
 
     @staticmethod
     def _forecast(actions: torch.Tensor, env, config: SafetyForecastConfig) -> torch.Tensor:

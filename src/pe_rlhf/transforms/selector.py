@@ -69,7 +69,12 @@ class HybridActionSelector(TensorDictModuleBase):
     (``"physics_or_recovery"``, a value source with ``recovery_value(env=)``) the better of it and the value
     of recovering at once. The forecast holds physics' action 1 s as any other, and the sharpest steps of
     physics' own lane change held 1 s leave the road although physics, a closed loop, never holds them: the
-    mentor's danger then hides below physics'.
+    mentor's danger then hides below physics'. Where braking at once is the better of the two, it is also
+    what the hybrid executes in physics' place (unbatched: the forecast reads one simulator).
+
+    ``strict_in_danger`` (off by default): where physics' (the reference's) own value is below the forecast's
+    horizon, the mentor needs an advantage of at least 0 whatever ``epsilon_select`` says: a negative epsilon's
+    slack, repeated step after step while everything is forecast to fail, ratchets the state down.
     """
 
     def __init__(
@@ -82,6 +87,7 @@ class HybridActionSelector(TensorDictModuleBase):
         imminent_failure: float | None = None,
         persistence: str = "off",
         reference: str = "physics",
+        strict_in_danger: bool = False,
         observation_key: NestedKey = "observation",
         mentor_action_key: NestedKey = "mentor_action",
         physics_action_key: NestedKey = "physics_action",
@@ -121,6 +127,10 @@ class HybridActionSelector(TensorDictModuleBase):
             raise ValueError(f"reference={reference!r} needs a value source with recovery_value (the physics "
                              f"forecast); {type(q_ensemble).__name__} has none")
         self.reference = reference
+        if strict_in_danger and not hasattr(q_ensemble, "horizon"):
+            raise ValueError(f"strict_in_danger needs a value source with a horizon (the physics forecast); "
+                             f"{type(q_ensemble).__name__} has none")
+        self.strict_in_danger = bool(strict_in_danger)
         self.veto_patience = veto_patience
         self.imminent_failure = None if imminent_failure is None else float(imminent_failure)
         self._veto_streak: torch.Tensor | None = None
@@ -178,9 +188,10 @@ class HybridActionSelector(TensorDictModuleBase):
             q = self.q_ensemble.values(obs, acts)  # (K, 2B) or (K, 2)
         q_mentor, q_phy = q.chunk(2, dim=1)
         if self.reference == "physics_or_recovery":  # physics is a closed loop: it can always brake now
-            q_phy = torch.maximum(q_phy, self.q_ensemble.recovery_value(env=env).to(q_phy))
+            physics_action, q_phy = self._better_fallback(physics_action, q_phy, env)
         advantage = (q_mentor - q_phy).mean(0)
-        chosen = advantage >= self.epsilon_select
+        epsilon = self._epsilon(q_phy.mean(0))
+        chosen = advantage >= epsilon
         if streak is None or streak.shape != chosen.shape:
             streak = torch.zeros_like(chosen, dtype=torch.long)
         if self.veto_patience > 1:
@@ -213,6 +224,23 @@ class HybridActionSelector(TensorDictModuleBase):
             replace = replace | (veto & (value_mentor <= self.imminent_failure))
         return ~replace, streak
 
+    def _better_fallback(self, physics_action: torch.Tensor, q_phy: torch.Tensor, env
+                         ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Physics' action and value, or the recovery's (braking now) where its value is higher (one row)."""
+        recovery = self.q_ensemble.recovery_value(env=env).to(q_phy)
+        if bool((recovery > q_phy).all()):
+            action = self.q_ensemble.recovery_action(env=env).to(physics_action)
+            return action.reshape(physics_action.shape), recovery.expand_as(q_phy)
+        return physics_action, q_phy
+
+    def _epsilon(self, value_phy: torch.Tensor) -> torch.Tensor:
+        """``epsilon_select`` per row; with ``strict_in_danger``, no slack (at least 0) where physics' own value
+        is below the forecast's horizon (the fallback itself is forecast to fail: only a better action wins)."""
+        eps = torch.full_like(value_phy, self.epsilon_select)
+        if self.strict_in_danger:
+            eps = torch.where(value_phy < self.q_ensemble.horizon, eps.clamp(min=0.0), eps)
+        return eps
+
     def _persistent(self, chosen: torch.Tensor, obs: torch.Tensor, acts: torch.Tensor, value_phy: torch.Tensor,
                     streak: torch.Tensor, env) -> tuple[torch.Tensor, torch.Tensor]:
         """The mentor's action repeated over the forecast must be no worse than physics' by ``epsilon_select``:
@@ -223,7 +251,7 @@ class HybridActionSelector(TensorDictModuleBase):
             n = len(acts) // 2
             kwargs = {"env": env} if getattr(self.q_ensemble, "needs_env", False) else {}
             repeated = self.q_ensemble.repeated_values(obs[:n], acts[:n], **kwargs).mean(0)
-            chosen = torch.where(need, repeated - value_phy >= self.epsilon_select, chosen)
+            chosen = torch.where(need, repeated - value_phy >= self._epsilon(value_phy), chosen)
         return chosen, (~chosen).long()
 
     def streak_state(self) -> list | None:

@@ -5,7 +5,9 @@ by the physics forecast (:class:`~pe_rlhf.physics.SafetyForecastValue`: seconds 
 then followed by a recovery, leads to a crash or off the road). The shield executes physics' action when the
 policy's fails more than ``threshold`` seconds sooner than physics' and hands the wheel back when it no longer
 does. The rule is :class:`~pe_rlhf.transforms.HybridActionSelector`'s, with the policy as the mentor
-(``epsilon_select = -threshold``) and ``persistence="latch"``: once the shield has acted it keeps the wheel
+(``epsilon_select = -threshold``), ``reference="physics_or_recovery"`` (physics' action, or braking at once where
+that is forecast safer: the fallback is what runs), ``strict_in_danger`` (no slack where the fallback itself
+is forecast to fail) and ``persistence="latch"``: once the shield has acted it keeps the wheel
 until the policy's action, *repeated* over the whole forecast (as a policy that repeats it will execute it),
 is no longer forecast to fail sooner than physics' by more than ``threshold``. Without the latch a policy that
 repeats a dangerous action passes the one-step check at every step while the sequence ends in a crash.
@@ -50,16 +52,17 @@ DEFAULT_THRESHOLD = 0.5  # [s] the selector's -epsilon_select (docs/results/clai
 
 
 def shield_selector(threshold: float = DEFAULT_THRESHOLD, persistence: str = "latch",
-                    forecast: SafetyForecastConfig | None = None, reference: str = "physics_or_recovery"
-                    ) -> HybridActionSelector:
+                    forecast: SafetyForecastConfig | None = None, reference: str = "physics_or_recovery",
+                    strict_in_danger: bool = True) -> HybridActionSelector:
     """The shield's rule: the hybrid selector over the physics forecast with ``epsilon_select = -threshold``,
-    ``persistence`` and ``reference`` (the policy is compared with the better of physics' action and braking
-    at once: :class:`~pe_rlhf.transforms.HybridActionSelector`)."""
+    ``persistence``, ``reference`` (the policy is compared with the better of physics' action and braking at
+    once, and the better one runs) and ``strict_in_danger`` (no slack where that fallback itself is forecast
+    to fail): :class:`~pe_rlhf.transforms.HybridActionSelector`."""
     if isinstance(threshold, bool) or not isinstance(threshold, (int, float)) or not np.isfinite(threshold) \
             or threshold < 0:
         raise ValueError(f"SafetyShield threshold={threshold!r} must be a finite number of seconds >= 0")
     return HybridActionSelector(SafetyForecastValue(forecast), -float(threshold), persistence=persistence,
-                                reference=reference)
+                                reference=reference, strict_in_danger=strict_in_danger)
 
 
 @dataclass(frozen=True)
