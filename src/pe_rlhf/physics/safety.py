@@ -149,11 +149,14 @@ class _Forecast:
         if not self.env.road.network.is_on_road(position, ROAD_EDGE_MARGIN):
             return True
         t, ego = i * self.config.dt, self.ego
-        ego_corners = utils.rect_corners(position, ego.LENGTH, ego.WIDTH, heading)
+        ego_corners = None  # built only when a road user is near enough to touch (most steps: none)
         for pos, vel, head, length, width in self.others:
             other = pos + vel * t
-            if np.linalg.norm(other - position) > (length + ego.LENGTH) / 2 + (width + ego.WIDTH) / 2:
+            if math.hypot(other[0] - position[0], other[1] - position[1]) > \
+                    (length + ego.LENGTH) / 2 + (width + ego.WIDTH) / 2:
                 continue
+            if ego_corners is None:
+                ego_corners = utils.rect_corners(position, ego.LENGTH, ego.WIDTH, heading)
             if utils.are_polygons_intersecting(ego_corners, utils.rect_corners(other, length, width, head),
                                                np.zeros(2), np.zeros(2))[0]:
                 return True

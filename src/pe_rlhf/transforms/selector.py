@@ -226,12 +226,16 @@ class HybridActionSelector(TensorDictModuleBase):
 
     def _better_fallback(self, physics_action: torch.Tensor, q_phy: torch.Tensor, env
                          ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Physics' action and value, or the recovery's (braking now) where its value is higher (one row)."""
+        """Physics' action and value, or the recovery's (braking now) where its value is higher by more than the
+        slack ``-epsilon_select`` (one row; braking where physics is only a little worse stops the car for good).
+        The value is the better of the two either way."""
+        if bool((q_phy >= self.q_ensemble.horizon).all()):
+            return physics_action, q_phy  # physics' action is safe over the whole forecast: nothing is better
         recovery = self.q_ensemble.recovery_value(env=env).to(q_phy)
-        if bool((recovery > q_phy).all()):
+        if bool((recovery > q_phy + max(-self.epsilon_select, 0.0)).all()):  # within the slack physics drives on
             action = self.q_ensemble.recovery_action(env=env).to(physics_action)
             return action.reshape(physics_action.shape), recovery.expand_as(q_phy)
-        return physics_action, q_phy
+        return physics_action, torch.maximum(q_phy, recovery)
 
     def _epsilon(self, value_phy: torch.Tensor) -> torch.Tensor:
         """``epsilon_select`` per row; with ``strict_in_danger``, no slack (at least 0) where physics' own value
