@@ -60,8 +60,9 @@ def agent_policy(run_dir: str):
     return TorchRLPolicyAdapter(load_run_actor(run_dir))
 
 
-def measure(policies: dict, seeds: list[int], config: DrivingConfig, threshold: float) -> dict:
-    """Each policy (name -> factory) alone and shielded; IDM-MOBIL alone once; decisions per second."""
+def measure(policies: dict, seeds: list[int], config: DrivingConfig, threshold: float, save=None) -> dict:
+    """Each policy (name -> factory) alone and shielded; IDM-MOBIL alone once; decisions per second.
+    ``save(results)`` is called after each policy (a long run keeps what it measured)."""
     results = {"idm-mobil": {"alone": rates(evaluate(make_policy("idm-mobil", 0), seeds, config, progress=True,
                                                      name="idm-mobil").to_dict())}}
     latencies = []
@@ -74,6 +75,8 @@ def measure(policies: dict, seeds: list[int], config: DrivingConfig, threshold: 
         print(f"{name}: alone {results[name]['alone']['success']:.2f}/{results[name]['alone']['violation']:.2f}, "
               f"shielded {results[name]['shielded']['success']:.2f}/{results[name]['shielded']['violation']:.2f} "
               f"override {results[name]['shielded']['override_share']:.3f}", flush=True)
+        if save is not None:
+            save({**results, "decisions_per_second": 1.0 / float(np.mean(latencies))})
     results.update(agent_means(results))
     results["decisions_per_second"] = 1.0 / float(np.mean(latencies))
     return results
@@ -124,14 +127,18 @@ def main(argv=None) -> dict:
             parser.error(f"--agent {spec!r}: NAME=RUN_DIR with an existing run folder")
         policies[name] = lambda run_dir=run_dir: agent_policy(run_dir)
     start = time.time()
-    results = measure(policies, seeds, DrivingConfig(split=args.split, lane_features=True), args.threshold)
-    results["meta"] = {"split": args.split, "scenes": [seeds[0], seeds[-1]], "episodes": len(seeds),
-                       "threshold": args.threshold, "seconds": round(time.time() - start),
-                       "command": "python benchmarks/shield.py " + " ".join(sys.argv[1:] if argv is None else argv)}
-    text = json.dumps(results, indent=2) + "\n"
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(text)
+    meta = {"split": args.split, "scenes": [seeds[0], seeds[-1]], "episodes": len(seeds), "threshold": args.threshold,
+            "command": "python benchmarks/shield.py " + " ".join(sys.argv[1:] if argv is None else argv)}
+
+    def save(results: dict) -> None:
+        if args.json:
+            args.json.parent.mkdir(parents=True, exist_ok=True)
+            args.json.write_text(json.dumps({**results, "meta": {**meta, "seconds": round(time.time() - start)}},
+                                            indent=2) + "\n")
+
+    results = measure(policies, seeds, DrivingConfig(split=args.split, lane_features=True), args.threshold, save)
+    results["meta"] = {**meta, "seconds": round(time.time() - start)}
+    save(results)
     print(f"decisions per second (one thread): {results['decisions_per_second']:.0f}; {len(seeds)} {args.split} "
           f"scenes, {results['meta']['seconds']} s")
     return results
