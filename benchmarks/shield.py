@@ -82,6 +82,28 @@ def measure(policies: dict, seeds: list[int], config: DrivingConfig, threshold: 
     return results
 
 
+def decision_cpu_time(cases=(("never-brake", 2), ("seek-collision", 5), ("random", 6)), steps: int = 100) -> dict:
+    """CPU seconds of one shield decision (``time.thread_time``: what one core spends, whatever else shares
+    the machine), per case ``(policy, train scene)``: mean and 95th percentile over ``steps`` steps."""
+    from pe_rlhf.envs import make_gym_env
+
+    env = SafetyShieldWrapper(make_gym_env(DrivingConfig(split="train", lane_features=True)))
+    out = {}
+    for name, scene in cases:
+        policy, (obs, _) = make_policy(name, 0), env.reset(options={"scene_seed": scene})
+        cpu = []
+        for _ in range(steps):
+            action = policy(obs, env.unwrapped)
+            start = time.thread_time()
+            decision = env.core.decide(env.unwrapped, action)
+            cpu.append(time.thread_time() - start)
+            obs, _, terminated, truncated, _ = env.unwrapped.step(decision.action)
+            if terminated or truncated:
+                break
+        out[f"{name}@{scene}"] = {"mean_ms": 1000 * float(np.mean(cpu)), "p95_ms": 1000 * float(np.percentile(cpu, 95))}
+    return out
+
+
 def agent_means(results: dict) -> dict:
     """Mean rows over the seeds of agents named ``<method>-s<seed>``: ``<method>-mean``."""
     groups: dict[str, list[str]] = {}
@@ -115,8 +137,14 @@ def main(argv=None) -> dict:
                         help="a trained run's actor, alone and shielded (repeatable)")
     parser.add_argument("--threshold", type=float, default=0.5, help="the shield's threshold [s]")
     parser.add_argument("--json", type=Path, default=None)
+    parser.add_argument("--cpu-time", action="store_true", help="instead: CPU time of one decision on a few train "
+                        "scenes (one core's cost, not the wall clock of a shared machine)")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
+    if args.cpu_time:
+        cpu = decision_cpu_time()
+        print(json.dumps(cpu, indent=2))
+        return cpu
     seeds = parse_scenes(args.scenes, args.split)
     if not seeds:
         parser.error(f"--scenes {args.scenes}: no {args.split} scene in that range")
