@@ -28,6 +28,7 @@ def test_an_agent_needs_an_existing_run_folder(bench, tmp_path, capsys):
     assert "NAME=RUN_DIR with an existing run folder" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_shielded_never_brake_on_one_train_scene(bench, tmp_path):
     out = tmp_path / "s.json"
     results = bench.main(["--scenes", "2", "--policies", "never-brake", "--json", str(out)])
