@@ -115,7 +115,9 @@ def forecast_value(hold: float = 1.0, recovery: str = "route", one_lane: bool = 
 def measure(mentors: list[str], scenes: list[int], split: str, value: str, epsilons: list[float],
             switch_margins: list[float | None], variance_threshold: float | None = None,
             forecast_hold: float = 1.0, forecast_recovery: str = "route", veto_patience: int = 1,
-            imminent_failure: float | None = None, one_lane: bool = False) -> list[dict]:
+            imminent_failure: float | None = None, one_lane: bool = False,
+            persistence: list[str] = ("off",), references: list[str] = ("physics",),
+            strict: list[bool] = (False,)) -> list[dict]:
     """Every row (see the module docstring) for every mentor, IDM-MOBIL alone once."""
     world = DrivingConfig(split=split, lane_features=True)
     kind, path = parse_value_source(value)
@@ -130,13 +132,23 @@ def measure(mentors: list[str], scenes: list[int], split: str, value: str, epsil
                         **drive(mentor, scenes, split, world=world, progress=f"{mentor} as-is")})
         for eps in epsilons:
             for margin in switch_margins:
-                selector = HybridActionSelector(ensemble, eps, variance_threshold, switch_margin=margin,
-                                                veto_patience=veto_patience, imminent_failure=imminent_failure)
-                label = f"hybrid eps={eps:g} margin={'none' if margin is None else f'{margin:g}'}"
-                if veto_patience > 1:
-                    label += f" patience={veto_patience} imminent={imminent_failure}"
-                results.append({"mentor": mentor, "row": label, "epsilon_select": eps, "switch_margin": margin,
-                                **drive(mentor, scenes, split, selector, world=world, progress=f"{mentor} {label}")})
+                for persist, reference, st in [(p, r, t) for p in persistence for r in references for t in strict]:
+                    selector = HybridActionSelector(ensemble, eps, variance_threshold, switch_margin=margin,
+                                                    veto_patience=veto_patience, imminent_failure=imminent_failure,
+                                                    persistence=persist, reference=reference, strict_in_danger=st)
+                    label = f"hybrid eps={eps:g} margin={'none' if margin is None else f'{margin:g}'}"
+                    if veto_patience > 1:
+                        label += f" patience={veto_patience} imminent={imminent_failure}"
+                    if persist != "off":
+                        label += f" persistence={persist}"
+                    if reference != "physics":
+                        label += f" reference={reference}"
+                    if st:
+                        label += " strict"
+                    results.append({"mentor": mentor, "row": label, "epsilon_select": eps, "switch_margin": margin,
+                                    "persistence": persist, "reference": reference,
+                                    "strict_in_danger": st, **drive(mentor, scenes, split, selector, world=world,
+                                                                    progress=f"{mentor} {label}")})
     return results
 
 
@@ -211,6 +223,14 @@ def main(argv=None) -> list[dict]:
                         "before physics replaces the mentor")
     parser.add_argument("--imminent-failure", type=float, default=None, help="selector.imminent_failure [s]: "
                         "a veto acts at once where the mentor's action fails this soon")
+    parser.add_argument("--persistence", nargs="+", choices=["off", "latch", "always"], default=["off"],
+                        help="selector.persistence with --value forecast: judge the mentor's action as it will be "
+                        "repeated (latch: a veto holds until it is safe; always: at every step)")
+    parser.add_argument("--references", nargs="+", choices=["physics", "physics_or_recovery"],
+                        default=["physics"], help="selector.reference with --value forecast: what the mentor is "
+                        "compared with (physics' action, or the better of it and braking at once)")
+    parser.add_argument("--strict", nargs="+", choices=["off", "on"], default=["off"],
+                        help="selector.strict_in_danger with --value forecast: no slack where physics itself fails")
     parser.add_argument("--hold-one-lane", action="store_true", help="selector.forecast_hold_one_lane: the hold "
                         "ends once the car has moved one lane width sideways")
     parser.add_argument("--forecast-recovery", choices=["route", "lanes"], default="route",
@@ -233,7 +253,8 @@ def main(argv=None) -> list[dict]:
     else:
         results = measure(args.mentors, scenes, args.split, args.value, args.epsilons, args.switch_margins,
                       args.variance_threshold, args.forecast_hold, args.forecast_recovery,
-                          args.veto_patience, args.imminent_failure, args.hold_one_lane)
+                          args.veto_patience, args.imminent_failure, args.hold_one_lane, args.persistence,
+                          args.references, [s == "on" for s in args.strict])
     print(format_table(results))
     print(f"{len(scenes)} {args.split} scenes ({scenes[0]}-{scenes[-1]}), value {args.value}, "
           f"{time.time() - t:.0f} s", flush=True)

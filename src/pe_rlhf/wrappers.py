@@ -38,6 +38,9 @@ from torchrl.envs.gym_like import BaseInfoDictReader
 from pe_rlhf.transforms.keys import (BEHAVIOR_ACTION, INTERVENTION, INTERVENTION_COST, INTERVENTION_START,
                                      MENTOR_ACTION, MENTOR_SELECTED, OUT_KEYS, PHYSICS_ACTION)
 from pe_rlhf.transforms.takeover_core import TakeoverCore, TakeoverStep, takeover_specs, takeover_tensors
+from pe_rlhf.transforms.shield import DEFAULT_THRESHOLD, ShieldCore
+from pe_rlhf.transforms.keys import (PHYSICS_TIME_TO_FAILURE, POLICY_TIME_TO_FAILURE, SHIELD_OVERRIDE,
+                                     SHIELDED_ACTION)
 
 # TorchRL key <- info key (the rest of OUT_KEYS keep their names).
 INFO_KEY = {key: key for key in OUT_KEYS} | {BEHAVIOR_ACTION: "teleop_action"}
@@ -147,3 +150,40 @@ class InfoToTakeoverKeys(BaseInfoDictReader):
 
 
 __all__ = ["INFO_KEY", "InfoToTakeoverKeys", "InterventionWrapper"]
+
+
+class SafetyShieldWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
+    """The runtime shield of :class:`~pe_rlhf.transforms.SafetyShield` around a gymnasium driving env.
+
+    The same arguments and decisions (:class:`~pe_rlhf.transforms.ShieldCore`: the policy's action is replaced
+    by physics' where it is forecast to fail more than ``threshold`` seconds sooner, until it no longer is);
+    physics and the forecast read the wrapped env's ``unwrapped`` (a ``DrivingEnv``). ``info`` gets the
+    transform's keys: ``shield_override`` (bool), ``shielded_action`` (float32 ``(2,)``, executed),
+    ``policy_time_to_failure`` and ``physics_time_to_failure`` (float, seconds), plus ``shield_latency``
+    (seconds the decision took). Works with any policy that calls ``env.step(action)`` (an SB3 model's
+    ``predict``: ``examples/sb3_shield.py``).
+    """
+
+    def __init__(self, env: gym.Env, threshold: float = DEFAULT_THRESHOLD, physics=None, selector=None,
+                 persistence: str = "latch"):
+        gym.utils.RecordConstructorArgs.__init__(self, threshold=threshold, physics=physics, selector=selector,
+                                                 persistence=persistence)
+        gym.Wrapper.__init__(self, env)
+        self.core = ShieldCore(threshold, physics, selector, persistence)
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        obs, info = self.env.reset(seed=seed, options=options)
+        self.core.reset(self.unwrapped)
+        return obs, info
+
+    def step(self, action):
+        d = self.core.decide(self.unwrapped, action)
+        executed = d.action if d.override else np.asarray(action, dtype=np.float32).reshape(d.action.shape)
+        obs, reward, terminated, truncated, info = self.env.step(executed)
+        return obs, reward, terminated, truncated, {
+            **info, SHIELD_OVERRIDE: d.override, SHIELDED_ACTION: np.array(executed, dtype=np.float32),
+            POLICY_TIME_TO_FAILURE: d.policy_time_to_failure, PHYSICS_TIME_TO_FAILURE: d.physics_time_to_failure,
+            "shield_latency": d.latency}
+
+
+__all__ += ["SafetyShieldWrapper"]

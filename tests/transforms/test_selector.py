@@ -250,3 +250,89 @@ def test_the_veto_count_survives_a_checkpoint_as_json():
     fresh.load_streak_state(None)
     assert _step(restored, -1.0, True) is False and _step(sel, -1.0, True) is False
     assert _step(fresh, -1.0, True) is True  # counting from 0: the first veto
+
+
+class TableForecast(torch.nn.Module):
+    """A forecast-like value source from tables: ``values`` reads the first action entry as its one-step value,
+    ``repeated_values`` as ``repeated[entry]``, ``recovery_value`` a fixed number (seconds)."""
+
+    needs_env = False
+
+    def __init__(self, repeated: dict[float, float], recovery: float = 0.0):
+        super().__init__()
+        self.repeated, self.recovery = repeated, recovery
+
+    def values(self, obs, acts):
+        return acts[..., 0].reshape(1, -1).float()
+
+    def repeated_values(self, obs, acts):
+        return torch.tensor([[self.repeated[round(float(a), 3)] for a in acts[..., 0].reshape(-1)]])
+
+    horizon = 3.0
+
+    def recovery_value(self, env=None):
+        return torch.tensor([[self.recovery]])
+
+    def recovery_action(self, env=None):
+        return torch.tensor([-9.0, -1.0])  # marked: a steering no policy proposes
+
+
+def test_a_latched_veto_holds_until_the_repeated_action_is_safe():
+    """One-step values: mentor 2.9 vs physics 3.0 passes eps -0.5, 2.0 does not. Repeated: 2.9 -> 1.0 (unsafe
+    when repeated), 2.8 -> 3.0 (safe). After a veto, 2.9 stays vetoed while latched; 2.8 releases the latch."""
+    sel = HybridActionSelector(TableForecast({2.9: 1.0, 2.8: 3.0, 2.0: 0.5}), -0.5, persistence="latch")
+    obs, phy = torch.zeros(1), torch.tensor([3.0, 0.0])
+    steps = [(2.9, True), (2.0, False), (2.9, False), (2.9, False), (2.8, True), (2.9, True)]
+    previous = None
+    for value, expected in steps:
+        _, chosen = sel.select(obs, torch.tensor([value, 0.0]), phy, previous)
+        assert bool(chosen) is expected, (value, expected)
+        previous = chosen
+    always = HybridActionSelector(TableForecast({2.9: 1.0, 2.8: 3.0}), -0.5, persistence="always")
+    assert not bool(always.select(obs, torch.tensor([2.9, 0.0]), phy)[1])  # checked even without a veto
+    off = HybridActionSelector(TableForecast({2.9: 1.0, 2.0: 0.5}), -0.5)
+    assert [bool(off.select(obs, torch.tensor([v, 0.0]), phy, True)[1]) for v in (2.0, 2.9)] == [False, True]
+
+
+def test_the_recovery_reference_compares_with_braking_at_once_when_physics_looks_worse():
+    """Physics' action 0.9 s (its lane change held 1 s), braking now 3.0 s: a mentor at 1.6 s is within 0.5 s of
+    physics' action but 1.4 s worse than the recovery, so only the recovery reference vetoes it."""
+    obs, mentor, phy = torch.zeros(1), torch.tensor([1.6, 0.0]), torch.tensor([0.9, 0.0])
+    plain = HybridActionSelector(TableForecast({}, recovery=3.0), -0.5)
+    best = HybridActionSelector(TableForecast({}, recovery=3.0), -0.5, reference="physics_or_recovery")
+    assert bool(plain.select(obs, mentor, phy)[1]) and not bool(best.select(obs, mentor, phy)[1])
+    hybrid, _, _, _, reference = best.judge(obs, mentor, phy)
+    assert reference.item() == pytest.approx(3.0)  # the value it compared with
+    assert hybrid.tolist() == [-9.0, -1.0]  # and braking at once is what runs in physics' place
+    worse_recovery = HybridActionSelector(TableForecast({}, recovery=0.5), -0.5, reference="physics_or_recovery")
+    hybrid, chosen, _, _, reference = worse_recovery.judge(obs, torch.tensor([0.2, 0.0]), phy)
+    assert not bool(chosen) and hybrid.tolist() == phy.tolist() and reference.item() == pytest.approx(0.9)
+
+
+@pytest.mark.parametrize("mentor, physics, chosen", [
+    (2.6, 3.0, True),  # physics safe over the horizon: the 0.5 s slack applies
+    (1.2, 1.5, False),  # physics itself forecast to fail: no slack, the mentor must be at least as good
+    (1.5, 1.5, True),
+])
+def test_strict_in_danger_removes_the_slack_where_physics_itself_fails(mentor, physics, chosen):
+    sel = HybridActionSelector(TableForecast({}), -0.5, strict_in_danger=True)
+    assert bool(sel.select(torch.zeros(1), torch.tensor([mentor, 0.0]), torch.tensor([physics, 0.0]))[1]) is chosen
+    loose = HybridActionSelector(TableForecast({}), -0.5)
+    assert bool(loose.select(torch.zeros(1), torch.tensor([mentor, 0.0]), torch.tensor([physics, 0.0]))[1])
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    ({"persistence": "sometimes"}, "persistence='sometimes' is invalid"),
+    ({"reference": "mentor"}, "reference='mentor' is invalid"),
+    ({"persistence": "latch", "veto_patience": 2}, "use one of them"),
+])
+def test_invalid_persistence_and_reference_raise(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        HybridActionSelector(TableForecast({}), -0.5, **kwargs)
+
+
+@pytest.mark.parametrize("kwargs", [{"persistence": "latch"}, {"reference": "physics_or_recovery"},
+                                    {"strict_in_danger": True}])
+def test_persistence_and_reference_need_the_forecast(kwargs):
+    with pytest.raises(ValueError, match="needs a value source"):
+        HybridActionSelector(ExactQ(), -0.5, **kwargs)

@@ -73,6 +73,16 @@ def _seeds(args: argparse.Namespace) -> list[int]:
     return seeds
 
 
+def _shield_threshold(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not value >= 0 or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"--shield {text!r}: a threshold in seconds >= 0 (e.g. 0.5)")
+    return value
+
+
 def run_evaluate(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
     """Evaluate one registered policy, print the stage table, write JSON if asked."""
     import pe_rlhf.mentors.registry  # noqa: F401  (registers professional / amateur / adversarial)
@@ -93,8 +103,18 @@ def run_evaluate(args: argparse.Namespace, parser: argparse.ArgumentParser) -> i
             policy, name = make_policy(args.policy, args.seed), args.policy
     except (ValueError, FileNotFoundError) as e:
         parser.error(str(e))
-    summary = evaluate(policy, seeds, config, progress=not args.no_progress, name=name).to_dict()
+    wrap_env = None
+    if args.shield is not None:  # a runtime shield (Simplex) over the policy: docs/guide/shield.md
+        from pe_rlhf.wrappers import SafetyShieldWrapper
+
+        threshold = float(args.shield)
+        wrap_env, name = (lambda env: SafetyShieldWrapper(env, threshold)), f"{name} shielded"
+    summary = evaluate(policy, seeds, config, progress=not args.no_progress, name=name, wrap_env=wrap_env).to_dict()
     print_summary(summary)
+    if args.shield is not None:
+        latency = summary["decision_latency_ms"]
+        print(f"shield: override share {summary['override_share']:.3f} of steps, decision latency "
+              f"{latency['mean']:.2f} ms (std {latency['std']:.2f})")
     if args.json:
         print(f"wrote {write_json(args.json, summary)}")
     return 0
@@ -115,6 +135,10 @@ def add_evaluate_parser(subparsers: argparse._SubParsersAction) -> argparse.Argu
     p.add_argument("--config-override", action="append", default=[], metavar="KEY=VALUE",
                    help="DrivingConfig field override, repeatable (e.g. traffic_density=0.8)")
     p.add_argument("--json", metavar="PATH", help="write the summary JSON here")
+    p.add_argument("--shield", nargs="?", type=_shield_threshold, const=0.5, default=None, metavar="SECONDS",
+                   help="drive under the runtime safety shield (physics takes over where the policy's action is "
+                   "forecast to fail more than SECONDS, default 0.5, sooner than physics'); reports the override "
+                   "share and the decision latency")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     p.set_defaults(handler=run_evaluate, subparser=p)
     return p

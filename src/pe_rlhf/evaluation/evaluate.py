@@ -51,6 +51,8 @@ class EpisodeResult:
     timeout: bool  # truncated at the horizon without success
     route_completion: float
     steps: int
+    override_steps: int | None = None  # steps a runtime shield executed its fallback (None: no shield)
+    decision_latency: float | None = None  # [s] mean time of a shield's decision (None: no shield)
 
     @property
     def failure_cause(self) -> str | None:
@@ -61,18 +63,27 @@ class EpisodeResult:
 
 
 def run_episode(env, policy: Policy, scene_seed: int) -> EpisodeResult:
-    """Drive ``policy`` (already reset) on scene ``scene_seed`` of ``env`` until the episode ends."""
+    """Drive ``policy`` (already reset) on scene ``scene_seed`` of ``env`` until the episode ends.
+
+    ``env`` may be a gymnasium wrapper of the driving env (a runtime shield): the policy reads its ``unwrapped``
+    simulator, and a step's ``info`` with ``shield_override`` / ``shield_latency`` is counted in
+    ``override_steps`` / ``decision_latency``."""
     obs, info = env.reset(options={"scene_seed": int(scene_seed)})
+    sim = getattr(env, "unwrapped", env)
     episodic_return = cost = velocity_sum = 0.0
     steps = 0
+    overrides, latencies = None, []
     terminated = truncated = False
     while not (terminated or truncated):
-        action = policy(obs, env)
+        action = policy(obs, sim)
         obs, reward, terminated, truncated, info = env.step(action)
         episodic_return += reward
         cost += info["cost"]
         velocity_sum += info["velocity"]
         steps += 1
+        if "shield_override" in info:
+            overrides = (overrides or 0) + bool(info["shield_override"])
+            latencies.append(float(info.get("shield_latency", float("nan"))))
     return EpisodeResult(
         scene_seed=int(scene_seed),
         episodic_return=float(episodic_return),
@@ -87,6 +98,8 @@ def run_episode(env, policy: Policy, scene_seed: int) -> EpisodeResult:
         timeout=bool(truncated and not info["success"]),
         route_completion=float(info["route_completion"]),
         steps=steps,
+        override_steps=overrides,
+        decision_latency=float(np.mean(latencies)) if latencies else None,
     )
 
 
@@ -121,6 +134,10 @@ class EvaluationSummary:
             out[key] = _mean_std([float(getattr(e, flag)) for e in eps])
         causes = [e.failure_cause for e in eps if e.failure_cause is not None]
         out["failure_breakdown"] = {c: causes.count(c) for c in FAILURE_CAUSES}
+        shielded = [e for e in eps if e.override_steps is not None]
+        if shielded:  # a runtime shield drove: the share of steps it overrode, the time of a decision
+            out["override_share"] = sum(e.override_steps for e in shielded) / max(sum(e.steps for e in shielded), 1)
+            out["decision_latency_ms"] = _mean_std([1000 * e.decision_latency for e in shielded])
         out["episodes"] = len(eps)
         out["seeds"] = [e.scene_seed for e in eps]
         out["policy"] = self.policy
@@ -135,15 +152,19 @@ def evaluate(
     config: DrivingConfig | dict | None = None,
     progress: bool = True,
     name: str | None = None,
+    wrap_env=None,
 ) -> EvaluationSummary:
     """Run one episode of ``policy`` per scene seed, in order, on one env.
 
     In: a policy (reset before each episode), scene seeds, a DrivingConfig (or dict,
     or None for defaults), whether to show a tqdm bar, an optional policy name for
-    the report. Out: an :class:`EvaluationSummary`.
+    the report, and ``wrap_env`` (a callable ``env -> env``, e.g. ``pe_rlhf.wrappers.SafetyShieldWrapper``: the
+    summary then reports ``override_share`` and ``decision_latency_ms``). Out: an :class:`EvaluationSummary`.
     """
     config = config if isinstance(config, DrivingConfig) else DrivingConfig.from_dict(config)
     env = make_gym_env(config)
+    if wrap_env is not None:
+        env = wrap_env(env)
     results: list[EpisodeResult] = []
     try:
         bar = tqdm(list(seeds), desc=f"evaluate {name or ''}".strip(), unit="ep", disable=not progress)

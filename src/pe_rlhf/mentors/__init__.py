@@ -1,9 +1,11 @@
 """Mentors: simulated drivers of controlled skill and a real person at the controls.
 
 All implement :class:`~pe_rlhf.mentors.base.Mentor`; ``make_mentor(name, seed)`` builds
-one by name (``professional``, ``amateur``, ``adversarial``/``bad``, ``collapsing``, ``human``).
+one by name (``professional``, ``amateur``, ``adversarial``/``bad``, ``collapsing``, ``human``; the persistent
+adversaries of :mod:`pe_rlhf.mentors.adversaries` are test and benchmark drivers).
 """
 
+from pe_rlhf.mentors.adversaries import ADVERSARY_NAMES, PersistentAdversary, make_adversary
 from pe_rlhf.mentors.base import Mentor, MentorDecision
 from pe_rlhf.mentors.collapsing import CollapsingMentor
 from pe_rlhf.mentors.driver import DriverParams, PrivilegedDriver
@@ -22,6 +24,9 @@ def __getattr__(name: str):
 
 
 __all__ = [
+    "ADVERSARY_NAMES",
+    "PersistentAdversary",
+    "make_adversary",
     "CollapsingMentor",
     "HumanMentor",
     "MENTOR_NAMES",

@@ -5,7 +5,8 @@
 overrides, ``collapsing`` (:class:`~pe_rlhf.mentors.collapsing.CollapsingMentor`: one
 preset, then another from a given step; overrides ``switch_step``, ``before``, ``after``), or
 ``human`` (:class:`pe_rlhf.mentors.human.HumanMentor`, overrides passed to its constructor,
-seed unused). Importing this module registers the simulated presets
+seed unused), or a persistent adversary (test and benchmark drivers, :mod:`pe_rlhf.mentors.adversaries`:
+``seek-collision``, ``never-brake``, ``drift-off-road``, ``uniform-random``). Importing this module registers the simulated presets
 with :func:`pe_rlhf.evaluation.register_policy` so ``pe-rlhf evaluate --policy
 professional`` drives the mentor alone.
 """
@@ -17,10 +18,11 @@ import dataclasses
 import numpy as np
 
 from pe_rlhf.evaluation.policies import POLICY_FACTORIES, register_policy
+from pe_rlhf.mentors.adversaries import ADVERSARY_NAMES, make_adversary
 from pe_rlhf.mentors.base import Mentor
 from pe_rlhf.mentors.simulated import ALIASES, PRESETS, SimulatedMentor, SkillProfile, preset
 
-MENTOR_NAMES = tuple(sorted(PRESETS)) + tuple(sorted(ALIASES)) + ("collapsing", "human")
+MENTOR_NAMES = tuple(sorted(PRESETS)) + tuple(sorted(ALIASES)) + ("collapsing", "human") + ADVERSARY_NAMES
 
 
 def make_mentor(name: str, seed: int = 0, **overrides) -> Mentor:
@@ -44,6 +46,10 @@ def make_mentor(name: str, seed: int = 0, **overrides) -> Mentor:
         if unknown:
             raise ValueError(f"unknown CollapsingMentor argument(s) {unknown}; known: {list(COLLAPSING_KWARGS)}")
         return CollapsingMentor(seed=seed, **overrides)
+    if name in ADVERSARY_NAMES:  # test and benchmark drivers (pe_rlhf.mentors.adversaries)
+        if overrides:
+            raise ValueError(f"adversary {name!r} takes no overrides, got {sorted(overrides)}")
+        return make_adversary(name, seed)
     if ALIASES.get(name, name) not in PRESETS:
         raise ValueError(f"unknown mentor {name!r}; allowed: {list(MENTOR_NAMES)}")
     known = {f.name for f in dataclasses.fields(SkillProfile)}
@@ -80,6 +86,9 @@ def _register() -> None:
     for name in sorted(PRESETS):
         if name not in POLICY_FACTORIES:
             register_policy(name, lambda seed, name=name: MentorPolicy(make_mentor(name, seed)))
+    for name in ADVERSARY_NAMES:
+        if name not in POLICY_FACTORIES:
+            register_policy(name, lambda seed, name=name: MentorPolicy(make_adversary(name, seed)))
 
 
 _register()

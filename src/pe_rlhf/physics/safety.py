@@ -20,6 +20,7 @@ forecast would not know.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -27,7 +28,7 @@ import numpy as np
 import torch
 from highway_env import utils
 
-from pe_rlhf.envs.action import MAX_BRAKING, MAX_STEERING, action_to_controls
+from pe_rlhf.envs.action import MAX_BRAKING, MAX_STEERING, action_to_controls, controls_to_action
 from pe_rlhf.envs.driving_env import ROAD_EDGE_MARGIN  # the env's own off-road test, not a copy of it
 from pe_rlhf.envs.geometry import LANE_WIDTH
 
@@ -148,11 +149,14 @@ class _Forecast:
         if not self.env.road.network.is_on_road(position, ROAD_EDGE_MARGIN):
             return True
         t, ego = i * self.config.dt, self.ego
-        ego_corners = utils.rect_corners(position, ego.LENGTH, ego.WIDTH, heading)
+        ego_corners = None  # built only when a road user is near enough to touch (most steps: none)
         for pos, vel, head, length, width in self.others:
             other = pos + vel * t
-            if np.linalg.norm(other - position) > (length + ego.LENGTH) / 2 + (width + ego.WIDTH) / 2:
+            if math.hypot(other[0] - position[0], other[1] - position[1]) > \
+                    (length + ego.LENGTH) / 2 + (width + ego.WIDTH) / 2:
                 continue
+            if ego_corners is None:
+                ego_corners = utils.rect_corners(position, ego.LENGTH, ego.WIDTH, heading)
             if utils.are_polygons_intersecting(ego_corners, utils.rect_corners(other, length, width, head),
                                                np.zeros(2), np.zeros(2))[0]:
                 return True
@@ -206,10 +210,41 @@ class SafetyForecastValue(torch.nn.Module):
         self.config = config or SafetyForecastConfig()
 
     def values(self, observation: torch.Tensor, actions: torch.Tensor, env=None) -> torch.Tensor:
+        return self._forecast(actions, env, self.config)
+
+    def repeated_values(self, observation: torch.Tensor, actions: torch.Tensor, env=None) -> torch.Tensor:
+        """As :meth:`values`, each action held for the whole horizon (no recovery): the action as a driver who
+        repeats it at every step will execute it (``HybridActionSelector(persistence=...)``)."""
+        config = dataclasses.replace(self.config, hold=self.config.horizon)
+        return self._forecast(actions, env, config)
+
+    def recovery_value(self, env=None) -> torch.Tensor:
+        """``(1, 1)``: seconds until a failure when the recovery starts now (no hold; the action is not read):
+        what any fallback that brakes at once can reach (``HybridActionSelector(reference=...)``)."""
+        config = dataclasses.replace(self.config, hold=0.0)
+        return self._forecast(torch.zeros(1, 2), env, config)
+
+    def recovery_action(self, env=None) -> torch.Tensor:
+        """``(2,)`` float32: the first step of the recovery from now (full braking, steering back along the
+        route): the action a fallback executes where physics' own is forecast worse."""
+        sim = getattr(env, "unwrapped", env)
+        forecast = _Forecast(sim, self.config)
+        state = (np.array(sim.vehicle.position, float), float(sim.vehicle.heading), float(sim.vehicle.speed),
+                 sim.route.project(sim.vehicle.position, sim.route_segment)[0])
+        steering = forecast.recovery_steering(state, None)
+        return torch.as_tensor(controls_to_action(steering, -self.config.recovery_braking))
+
+    @property
+    def horizon(self) -> float:
+        """The forecast's length [s]: the value of an action that fails within it is below this."""
+        return float(self.config.horizon)
+
+    @staticmethod
+    def _forecast(actions: torch.Tensor, env, config: SafetyForecastConfig) -> torch.Tensor:
         if env is None:
             raise ValueError("SafetyForecastValue.values needs env= (the simulator to forecast from)")
         acts = actions.reshape(-1, actions.shape[-1]).detach().cpu().numpy()
-        out = [time_to_failure(env, a, self.config) if np.all(np.isfinite(a)) else 0.0 for a in acts]
+        out = [time_to_failure(env, a, config) if np.all(np.isfinite(a)) else 0.0 for a in acts]
         return torch.tensor([out], dtype=torch.float32)
 
 

@@ -14,6 +14,16 @@
 ``physics_action`` (A,)      the physics proposal during a PE-RLHF takeover, else zeros (float32)
 ``mentor_selected`` (1,)     the mentor's action was executed in a takeover (bool)
 ===========================  ==================================================================
+
+:class:`~pe_rlhf.transforms.SafetyShield` writes its own under ``next`` (renamable with its ``out_keys``, in the
+order of :data:`SHIELD_OUT_KEYS`); :class:`~pe_rlhf.wrappers.SafetyShieldWrapper` reports them in ``info``.
+
+=================================  ============================================================
+``shield_override`` (1,)           the shield executed physics' action this step (bool)
+``shielded_action`` (A,)           the action executed (float32)
+``policy_time_to_failure`` (1,)    the forecast of the policy's action [s] (float32)
+``physics_time_to_failure`` (1,)   the forecast of physics' action [s] (float32)
+=================================  ============================================================
 """
 
 from __future__ import annotations
@@ -32,5 +42,12 @@ ACTION_KEYS = (BEHAVIOR_ACTION, MENTOR_ACTION, PHYSICS_ACTION)  # float32 (A,)
 FLAG_KEYS = (INTERVENTION, INTERVENTION_START, MENTOR_SELECTED)  # bool (1,)
 COST_KEY = INTERVENTION_COST  # float32 (1,)
 
+SHIELD_OVERRIDE = "shield_override"
+SHIELDED_ACTION = "shielded_action"
+POLICY_TIME_TO_FAILURE = "policy_time_to_failure"
+PHYSICS_TIME_TO_FAILURE = "physics_time_to_failure"
+SHIELD_OUT_KEYS = (SHIELD_OVERRIDE, SHIELDED_ACTION, POLICY_TIME_TO_FAILURE, PHYSICS_TIME_TO_FAILURE)
+
 __all__ = ["ACTION_KEYS", "BEHAVIOR_ACTION", "COST_KEY", "FLAG_KEYS", "INTERVENTION", "INTERVENTION_COST",
-           "INTERVENTION_START", "MENTOR_ACTION", "MENTOR_SELECTED", "OUT_KEYS", "PHYSICS_ACTION"]
+           "INTERVENTION_START", "MENTOR_ACTION", "MENTOR_SELECTED", "OUT_KEYS", "PHYSICS_ACTION",
+           "PHYSICS_TIME_TO_FAILURE", "POLICY_TIME_TO_FAILURE", "SHIELDED_ACTION", "SHIELD_OUT_KEYS", "SHIELD_OVERRIDE"]

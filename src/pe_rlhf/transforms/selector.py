@@ -11,6 +11,9 @@ from tensordict.utils import NestedKey
 
 from pe_rlhf.modules.q_ensemble import QEnsemble
 
+PERSISTENCE = ("off", "latch", "always")  # HybridActionSelector.persistence
+REFERENCES = ("physics", "physics_or_recovery")  # HybridActionSelector.reference
+
 
 class HybridActionSelector(TensorDictModuleBase):
     """``a_hybrid = a_mentor`` iff ``mean_k[Q_k(s, a_mentor) - Q_k(s, a_phy)] >= epsilon_select``, else ``a_phy``.
@@ -52,6 +55,26 @@ class HybridActionSelector(TensorDictModuleBase):
     one takeover at a time (``InterventionTransform``, ``InterventionWrapper``; batched inputs keep one count per
     row, and ``HybridSelectionTransform`` keeps its own count per row); :meth:`streak_state` /
     :meth:`load_streak_state` carry it through a checkpoint.
+
+    ``persistence`` ("off" by default) judges the mentor's action as it will actually be repeated, for a value
+    source with ``repeated_values(obs, acts, env=)`` (:class:`~pe_rlhf.physics.SafetyForecastValue`: the action
+    held for the whole horizon, no recovery). ``"latch"``: a veto holds; once physics replaced the mentor in a
+    takeover, physics keeps the wheel until the mentor's action *repeated* is no worse than physics' by
+    ``epsilon_select`` (the latch is the veto count, 1 while held: same state, same checkpointing).
+    ``"always"``: every step's mentor action must pass that repeated check as well. A driver that repeats a
+    dangerous action passes a one-step check at every step while the sequence ends in a crash; the latch is
+    what stops it (``benchmarks/ensemble_selection.py``, docs/guide/shield.md).
+
+    ``reference`` ("physics" by default) is what the mentor is compared with: physics' action's value, or
+    (``"physics_or_recovery"``, a value source with ``recovery_value(env=)``) the better of it and the value
+    of recovering at once. The forecast holds physics' action 1 s as any other, and the sharpest steps of
+    physics' own lane change held 1 s leave the road although physics, a closed loop, never holds them: the
+    mentor's danger then hides below physics'. Where braking at once is the better of the two, it is also
+    what the hybrid executes in physics' place (unbatched: the forecast reads one simulator).
+
+    ``strict_in_danger`` (off by default): where physics' (the reference's) own value is below the forecast's
+    horizon, the mentor needs an advantage of at least 0 whatever ``epsilon_select`` says: a negative epsilon's
+    slack, repeated step after step while everything is forecast to fail, ratchets the state down.
     """
 
     def __init__(
@@ -62,6 +85,9 @@ class HybridActionSelector(TensorDictModuleBase):
         switch_margin: float | None = None,
         veto_patience: int = 1,
         imminent_failure: float | None = None,
+        persistence: str = "off",
+        reference: str = "physics",
+        strict_in_danger: bool = False,
         observation_key: NestedKey = "observation",
         mentor_action_key: NestedKey = "mentor_action",
         physics_action_key: NestedKey = "physics_action",
@@ -87,6 +113,24 @@ class HybridActionSelector(TensorDictModuleBase):
                                              or not isinstance(imminent_failure, (int, float))
                                              or not math.isfinite(imminent_failure)):
             raise ValueError(f"imminent_failure={imminent_failure!r} must be a finite number, or None")
+        if persistence not in PERSISTENCE:
+            raise ValueError(f"persistence={persistence!r} is invalid: allowed {list(PERSISTENCE)}")
+        if persistence != "off" and not hasattr(q_ensemble, "repeated_values"):
+            raise ValueError(f"persistence={persistence!r} needs a value source with repeated_values (the physics "
+                             f"forecast); {type(q_ensemble).__name__} has none")
+        if persistence != "off" and veto_patience > 1:
+            raise ValueError("persistence and veto_patience > 1 both keep the veto count: use one of them")
+        self.persistence = persistence
+        if reference not in REFERENCES:
+            raise ValueError(f"reference={reference!r} is invalid: allowed {list(REFERENCES)}")
+        if reference != "physics" and not hasattr(q_ensemble, "recovery_value"):
+            raise ValueError(f"reference={reference!r} needs a value source with recovery_value (the physics "
+                             f"forecast); {type(q_ensemble).__name__} has none")
+        self.reference = reference
+        if strict_in_danger and not hasattr(q_ensemble, "horizon"):
+            raise ValueError(f"strict_in_danger needs a value source with a horizon (the physics forecast); "
+                             f"{type(q_ensemble).__name__} has none")
+        self.strict_in_danger = bool(strict_in_danger)
         self.veto_patience = veto_patience
         self.imminent_failure = None if imminent_failure is None else float(imminent_failure)
         self._veto_streak: torch.Tensor | None = None
@@ -109,7 +153,7 @@ class HybridActionSelector(TensorDictModuleBase):
         count is this selector's (:meth:`select_counted` takes it as an argument instead)."""
         streak = None if previous is None else self._veto_streak  # None: a takeover's start counts from 0
         hybrid, chosen, streak = self.select_counted(observation, mentor_action, physics_action, previous, streak, env)
-        if self.veto_patience > 1:
+        if self.veto_patience > 1 or self.persistence != "off":
             self._veto_streak = streak
         return hybrid, chosen
 
@@ -123,6 +167,15 @@ class HybridActionSelector(TensorDictModuleBase):
         for ``N`` rows (``(1,)`` unbatched); None or another shape: zeros (every row's takeover starts here).
         The returned ``streak`` is the count after this step (used with ``veto_patience`` > 1; without it,
         zeros). ``previous`` serves ``switch_margin`` only."""
+        return self.judge(observation, mentor_action, physics_action, previous, streak, env)[:3]
+
+    @torch.no_grad()
+    def judge(self, observation: torch.Tensor, mentor_action: torch.Tensor, physics_action: torch.Tensor,
+              previous: torch.Tensor | bool | None = None, streak: torch.Tensor | None = None, env=None
+              ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """:meth:`select_counted` and the values it compared: ``(hybrid_action, mentor_selected, streak,
+        value_mentor, value_physics)``, the last two float32 ``(N,)`` (the ensemble's mean; with the forecast,
+        seconds until each action fails)."""
         obs = torch.cat([observation, observation], 0) if observation.dim() > 1 else torch.stack([observation] * 2)
         acts = torch.cat([mentor_action, physics_action], 0) if mentor_action.dim() > 1 else torch.stack(
             [mentor_action, physics_action])
@@ -134,12 +187,17 @@ class HybridActionSelector(TensorDictModuleBase):
         else:
             q = self.q_ensemble.values(obs, acts)  # (K, 2B) or (K, 2)
         q_mentor, q_phy = q.chunk(2, dim=1)
+        if self.reference == "physics_or_recovery":  # physics is a closed loop: it can always brake now
+            physics_action, q_phy = self._better_fallback(physics_action, q_phy, env)
         advantage = (q_mentor - q_phy).mean(0)
-        chosen = advantage >= self.epsilon_select
+        epsilon = self._epsilon(q_phy.mean(0))
+        chosen = advantage >= epsilon
         if streak is None or streak.shape != chosen.shape:
             streak = torch.zeros_like(chosen, dtype=torch.long)
         if self.veto_patience > 1:
             chosen, streak = self._patient(chosen, q_mentor.mean(0), streak)
+        if self.persistence != "off":
+            chosen, streak = self._persistent(chosen, obs, acts, q_phy.mean(0), streak, env)
         if self.switch_margin is not None and previous is not None:
             prev = torch.as_tensor(previous, dtype=torch.bool, device=advantage.device).reshape(advantage.shape)
             stay_mentor = advantage >= self.epsilon_select - self.switch_margin
@@ -153,7 +211,7 @@ class HybridActionSelector(TensorDictModuleBase):
         if mentor_action.dim() == 1:
             chosen = chosen.squeeze(0)
         hybrid = torch.where(chosen.unsqueeze(-1), mentor_action, physics_action)
-        return hybrid, chosen.unsqueeze(-1), streak
+        return hybrid, chosen.unsqueeze(-1), streak, q_mentor.mean(0), q_phy.mean(0)
 
     def _patient(self, chosen: torch.Tensor, value_mentor: torch.Tensor, streak: torch.Tensor
                  ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -165,6 +223,40 @@ class HybridActionSelector(TensorDictModuleBase):
         if self.imminent_failure is not None:
             replace = replace | (veto & (value_mentor <= self.imminent_failure))
         return ~replace, streak
+
+    def _better_fallback(self, physics_action: torch.Tensor, q_phy: torch.Tensor, env
+                         ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Physics' action and value, or the recovery's (braking now) where its value is higher by more than the
+        slack ``-epsilon_select`` (one row; braking where physics is only a little worse stops the car for good).
+        The value is the better of the two either way."""
+        if bool((q_phy >= self.q_ensemble.horizon).all()):
+            return physics_action, q_phy  # physics' action is safe over the whole forecast: nothing is better
+        recovery = self.q_ensemble.recovery_value(env=env).to(q_phy)
+        if bool((recovery > q_phy + max(-self.epsilon_select, 0.0)).all()):  # within the slack physics drives on
+            action = self.q_ensemble.recovery_action(env=env).to(physics_action)
+            return action.reshape(physics_action.shape), recovery.expand_as(q_phy)
+        return physics_action, torch.maximum(q_phy, recovery)
+
+    def _epsilon(self, value_phy: torch.Tensor) -> torch.Tensor:
+        """``epsilon_select`` per row; with ``strict_in_danger``, no slack (at least 0) where physics' own value
+        is below the forecast's horizon (the fallback itself is forecast to fail: only a better action wins)."""
+        eps = torch.full_like(value_phy, self.epsilon_select)
+        if self.strict_in_danger:
+            eps = torch.where(value_phy < self.q_ensemble.horizon, eps.clamp(min=0.0), eps)
+        return eps
+
+    def _persistent(self, chosen: torch.Tensor, obs: torch.Tensor, acts: torch.Tensor, value_phy: torch.Tensor,
+                    streak: torch.Tensor, env) -> tuple[torch.Tensor, torch.Tensor]:
+        """The mentor's action repeated over the forecast must be no worse than physics' by ``epsilon_select``:
+        at every step (``always``) or while a veto holds (``latch``: ``streak`` 1); returns the choice and the
+        new latch (1 where physics drives)."""
+        need = chosen if self.persistence == "always" else chosen & (streak > 0)
+        if need.any():
+            n = len(acts) // 2
+            kwargs = {"env": env} if getattr(self.q_ensemble, "needs_env", False) else {}
+            repeated = self.q_ensemble.repeated_values(obs[:n], acts[:n], **kwargs).mean(0)
+            chosen = torch.where(need, repeated - value_phy >= self._epsilon(value_phy), chosen)
+        return chosen, (~chosen).long()
 
     def streak_state(self) -> list | None:
         """The veto count of the takeover in progress (``veto_patience`` > 1), as JSON data: None (no count yet: the

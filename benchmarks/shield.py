@@ -1,0 +1,176 @@
+"""The runtime shield against any driver: each policy alone and under ``SafetyShieldWrapper``, beside IDM-MOBIL.
+
+    python benchmarks/shield.py --split test --scenes 1000-1049 --json docs/results/shield/summary.json
+    python benchmarks/shield.py --split train --scenes 0-9 --agent pe-rlhf-s0=runs/pe-rlhf-s0
+
+Policies: ``random`` (uniform actions), ``adversarial`` (the preset mentor driving alone), ``idm-mobil-blind``
+(physics that does not see static obstacles), the persistent adversaries of :mod:`pe_rlhf.mentors.adversaries`,
+and every ``--agent NAME=RUN_DIR`` (a trained run's actor, as ``pe-rlhf evaluate --checkpoint``; NAME a label,
+e.g. ``pe-rlhf-professional-s0``; agents sharing a NAME prefix before ``-s<seed>`` get a mean row).
+
+Writes ``{"<policy>": {"alone": {"success", "violation", ...}, "shielded": {"success", "violation",
+"override_share", ...}}, "idm-mobil": {...}, "decisions_per_second": x, ...}``: rates over the scenes with
+95% bootstrap intervals (``*_ci``); ``decisions_per_second`` is 1 / the mean time of a shield's decision
+(physics' action and the forecasts), one thread (``torch.set_num_threads(1)``). Calibrate (``--threshold``) on
+``--split train`` only.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+import pe_rlhf.mentors.registry  # noqa: F401  (registers the presets and the adversaries as policies)
+from pe_rlhf.envs import DrivingConfig, scene_seeds
+from pe_rlhf.evaluation import evaluate, make_policy
+from pe_rlhf.evaluation.statistics import bootstrap_interval
+from pe_rlhf.mentors import ADVERSARY_NAMES
+from pe_rlhf.wrappers import SafetyShieldWrapper
+
+POLICIES = ("random", "adversarial", "idm-mobil-blind", *ADVERSARY_NAMES)
+
+
+def rates(summary: dict) -> dict:
+    """Success and violation (a crash or leaving the road) rates of an evaluation summary, with 95% bootstrap
+    intervals over its scenes; the shield's override share and decision latency when it drove."""
+    detail = summary["episodes_detail"]
+    success = [float(e["success"]) for e in detail]
+    violation = [float(e["crash_vehicle"] or e["crash_object"] or e["out_of_road"]) for e in detail]
+    out = {"success": float(np.mean(success)), "violation": float(np.mean(violation)),
+           "success_ci": bootstrap_interval(success), "violation_ci": bootstrap_interval(violation),
+           "timeout": float(np.mean([e["timeout"] for e in detail])), "episodes": len(detail)}
+    if "override_share" in summary:
+        out["override_share"] = summary["override_share"]
+        out["decision_latency_ms"] = summary["decision_latency_ms"]["mean"]
+    return out
+
+
+def agent_policy(run_dir: str):
+    """A trained run's actor as an evaluation policy (``pe-rlhf evaluate --checkpoint``)."""
+    from pe_rlhf.algorithms.proxy_q.trained_policy import load_run_actor
+    from pe_rlhf.evaluation import TorchRLPolicyAdapter
+
+    return TorchRLPolicyAdapter(load_run_actor(run_dir))
+
+
+def measure(policies: dict, seeds: list[int], config: DrivingConfig, threshold: float, save=None) -> dict:
+    """Each policy (name -> factory) alone and shielded; IDM-MOBIL alone once; decisions per second.
+    ``save(results)`` is called after each policy (a long run keeps what it measured)."""
+    results = {"idm-mobil": {"alone": rates(evaluate(make_policy("idm-mobil", 0), seeds, config, progress=True,
+                                                     name="idm-mobil").to_dict())}}
+    latencies = []
+    for name, factory in policies.items():
+        alone = evaluate(factory(), seeds, config, name=name).to_dict()
+        shielded = evaluate(factory(), seeds, config, name=f"{name} shielded",
+                            wrap_env=lambda env: SafetyShieldWrapper(env, threshold)).to_dict()
+        results[name] = {"alone": rates(alone), "shielded": rates(shielded)}
+        latencies += [e["decision_latency"] for e in shielded["episodes_detail"] for _ in range(e["steps"])]
+        print(f"{name}: alone {results[name]['alone']['success']:.2f}/{results[name]['alone']['violation']:.2f}, "
+              f"shielded {results[name]['shielded']['success']:.2f}/{results[name]['shielded']['violation']:.2f} "
+              f"override {results[name]['shielded']['override_share']:.3f}", flush=True)
+        if save is not None:
+            save({**results, "decisions_per_second": 1.0 / float(np.mean(latencies))})
+    results.update(agent_means(results))
+    results["decisions_per_second"] = 1.0 / float(np.mean(latencies))
+    return results
+
+
+def decision_cpu_time(cases=(("never-brake", 2), ("seek-collision", 5), ("random", 6)), steps: int = 100) -> dict:
+    """CPU seconds of one shield decision (``time.thread_time``: what one core spends, whatever else shares
+    the machine), per case ``(policy, train scene)``: mean and 95th percentile over ``steps`` steps."""
+    from pe_rlhf.envs import make_gym_env
+
+    env = SafetyShieldWrapper(make_gym_env(DrivingConfig(split="train", lane_features=True)))
+    out = {}
+    for name, scene in cases:
+        policy, (obs, _) = make_policy(name, 0), env.reset(options={"scene_seed": scene})
+        cpu = []
+        for _ in range(steps):
+            action = policy(obs, env.unwrapped)
+            start = time.thread_time()
+            decision = env.core.decide(env.unwrapped, action)
+            cpu.append(time.thread_time() - start)
+            obs, _, terminated, truncated, _ = env.unwrapped.step(decision.action)
+            if terminated or truncated:
+                break
+        out[f"{name}@{scene}"] = {"mean_ms": 1000 * float(np.mean(cpu)), "p95_ms": 1000 * float(np.percentile(cpu, 95))}
+    return out
+
+
+def agent_means(results: dict) -> dict:
+    """Mean rows over the seeds of agents named ``<method>-s<seed>``: ``<method>-mean``."""
+    groups: dict[str, list[str]] = {}
+    for name in results:
+        match = re.fullmatch(r"(.+)-s\d+", name)
+        if match:
+            groups.setdefault(match.group(1), []).append(name)
+    out = {}
+    for method, names in groups.items():
+        if len(names) < 2:
+            continue
+        out[f"{method}-mean"] = {
+            face: {key: float(np.mean([results[n][face][key] for n in names]))
+                   for key in ("success", "violation", "override_share") if key in results[names[0]][face]}
+            for face in ("alone", "shielded")} | {"seeds": sorted(names)}
+    return out
+
+
+def parse_scenes(text: str, split: str) -> list[int]:
+    lo, _, hi = text.partition("-")
+    first, last = int(lo), int(hi or lo)
+    return [s for s in scene_seeds(split) if first <= s <= last]
+
+
+def main(argv=None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--split", choices=["train", "test"], default="train")
+    parser.add_argument("--scenes", default="0-9", help="a range of the split's scene seeds (test: 1000-1049)")
+    parser.add_argument("--policies", nargs="*", default=list(POLICIES), help=f"default: {list(POLICIES)}")
+    parser.add_argument("--agent", action="append", default=[], metavar="NAME=RUN_DIR",
+                        help="a trained run's actor, alone and shielded (repeatable)")
+    parser.add_argument("--threshold", type=float, default=0.5, help="the shield's threshold [s]")
+    parser.add_argument("--json", type=Path, default=None)
+    parser.add_argument("--cpu-time", action="store_true", help="instead: CPU time of one decision on a few train "
+                        "scenes (one core's cost, not the wall clock of a shared machine)")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(1)
+    if args.cpu_time:
+        cpu = decision_cpu_time()
+        print(json.dumps(cpu, indent=2))
+        return cpu
+    seeds = parse_scenes(args.scenes, args.split)
+    if not seeds:
+        parser.error(f"--scenes {args.scenes}: no {args.split} scene in that range")
+    policies = {name: (lambda name=name: make_policy(name, 0)) for name in args.policies}
+    for spec in args.agent:
+        name, sep, run_dir = spec.partition("=")
+        if not sep or not name or not Path(run_dir).is_dir():
+            parser.error(f"--agent {spec!r}: NAME=RUN_DIR with an existing run folder")
+        policies[name] = lambda run_dir=run_dir: agent_policy(run_dir)
+    start = time.time()
+    meta = {"split": args.split, "scenes": [seeds[0], seeds[-1]], "episodes": len(seeds), "threshold": args.threshold,
+            "command": "python benchmarks/shield.py " + " ".join(sys.argv[1:] if argv is None else argv)}
+
+    def save(results: dict) -> None:
+        if args.json:
+            args.json.parent.mkdir(parents=True, exist_ok=True)
+            args.json.write_text(json.dumps({**results, "meta": {**meta, "seconds": round(time.time() - start)}},
+                                            indent=2) + "\n")
+
+    results = measure(policies, seeds, DrivingConfig(split=args.split, lane_features=True), args.threshold, save)
+    results["meta"] = {**meta, "seconds": round(time.time() - start)}
+    save(results)
+    print(f"decisions per second (one thread): {results['decisions_per_second']:.0f}; {len(seeds)} {args.split} "
+          f"scenes, {results['meta']['seconds']} s")
+    return results
+
+
+if __name__ == "__main__":
+    main()
