@@ -22,8 +22,9 @@ from torchrl.modules import MLP, ProbabilisticActor, TanhNormal
 from torchrl.objectives import ValueEstimators
 from torchrl.objectives.value import GAE, TD0Estimator
 
-from pe_rlhf.modules import make_actor, make_deterministic_actor, make_qvalue
-from pe_rlhf.objectives import CPOLoss, LagrangeMultiplier, PERLHFLoss, PPOLagLoss, ProxyValueLoss, SACLagLoss
+from pe_rlhf.modules import QEnsemble, make_actor, make_deterministic_actor, make_qvalue
+from pe_rlhf.objectives import (CPOLoss, LagrangeMultiplier, PERLHFLoss, PPOLagLoss, ProxyValueLoss, QEnsembleTDLoss,
+                                SACLagLoss)
 from pe_rlhf.objectives.contract import UnsupportedValueEstimator
 from pe_rlhf.objectives.perlhf import make_transitions
 
@@ -42,6 +43,17 @@ def perlhf(**kwargs) -> PERLHFLoss:
 def proxy_value() -> ProxyValueLoss:
     torch.manual_seed(0)
     return ProxyValueLoss(make_deterministic_actor(OBS, ACT, (16,)), make_qvalue(OBS, ACT, (16,)), policy_delay=1)
+
+
+def q_ensemble_td() -> QEnsembleTDLoss:
+    torch.manual_seed(0)
+    return QEnsembleTDLoss(QEnsemble(OBS, ACT, num_members=3, hidden=(16,)))
+
+
+def ensemble_batch() -> TensorDict:
+    td = perlhf_batch()
+    td.set(("next", "action"), torch.rand(B, ACT, generator=torch.Generator().manual_seed(2)) * 2 - 1)
+    return td
 
 
 def perlhf_batch() -> TensorDict:
@@ -122,6 +134,8 @@ LOSSES = {
                        ("behavior_action", ("next", "executed_action")), ValueEstimators.TD0, ValueEstimators.GAE),
     "ProxyValueLoss": Case(proxy_value, perlhf_batch, ("loss_qvalue", "td_loss"),
                            ("behavior_action", ("next", "executed_action")), ValueEstimators.TD0, ValueEstimators.GAE),
+    "QEnsembleTDLoss": Case(q_ensemble_td, ensemble_batch, ("loss_qvalue", "q_spread"),
+                            ("next_action", ("next", "policy_action")), ValueEstimators.TD0, ValueEstimators.GAE),
     "SACLagLoss": Case(sac_lag, sac_batch, ("loss_actor", "loss_cost_qvalue"), ("cost", "safety_cost"),
                        ValueEstimators.TD0, ValueEstimators.GAE),
     "PPOLagLoss": Case(ppo_lag, trajectory_batch, ("loss_objective", "loss_cost_critic"), ("cost", "safety_cost"),

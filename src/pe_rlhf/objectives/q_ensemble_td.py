@@ -34,8 +34,11 @@ from dataclasses import dataclass
 
 import torch
 from tensordict import TensorDict, TensorDictBase, TensorDictParams
+from tensordict.nn import dispatch
 from tensordict.utils import NestedKey
 from torchrl.objectives.common import LossModule
+
+from pe_rlhf.objectives.contract import KeyedLoss
 
 from pe_rlhf.modules.q_ensemble import QEnsemble
 
@@ -44,7 +47,7 @@ __all__ = ["QEnsembleTDLoss", "REGRESSIONS"]
 REGRESSIONS = ("mean", "member")
 
 
-class QEnsembleTDLoss(LossModule):
+class QEnsembleTDLoss(KeyedLoss, LossModule):
     """TD loss of a :class:`~pe_rlhf.modules.QEnsemble` towards the value of the data's policy (module docstring).
 
     Args:
@@ -122,7 +125,6 @@ class QEnsembleTDLoss(LossModule):
         self.qvalue_network_params = qvalue_network.ensemble.params_td
         self.target_qvalue_network_params = target.ensemble.params_td
         self._has_update_associated["qvalue_network"] = False  # until a SoftUpdate is attached (torchrl warns)
-        self._in_keys = None
 
     @staticmethod
     def read_keys(keys: QEnsembleTDLoss._AcceptedKeys) -> list[NestedKey]:
@@ -130,18 +132,11 @@ class QEnsembleTDLoss(LossModule):
         return [keys.observation, keys.action, ("next", keys.observation), ("next", keys.reward),
                 ("next", keys.terminated), keys.next_action]
 
-    def _set_in_keys(self) -> None:
-        self._in_keys = self.read_keys(self.tensor_keys)
+    # the TorchRL contract (pe_rlhf.objectives.contract): in_keys, out_keys with setters, TD0 only
+    def _loss_in_keys(self) -> list[NestedKey]:
+        return self.read_keys(self.tensor_keys)
 
-    @property
-    def in_keys(self) -> list[NestedKey]:
-        """The keys ``forward`` reads, from ``tensor_keys``."""
-        if self._in_keys is None:
-            self._set_in_keys()
-        return self._in_keys
-
-    @property
-    def out_keys(self) -> list[str]:
+    def _loss_out_keys(self) -> list[str]:
         """``loss_qvalue`` and the diagnostics ``td_target``, ``q_value``, ``q_spread``."""
         return ["loss_qvalue", "td_target", "q_value", "q_spread"]
 
@@ -161,6 +156,7 @@ class QEnsembleTDLoss(LossModule):
             q_next = self.target_qvalue_network.values(next_td[keys.observation], next_action).mean(0)
             return reward + self.gamma * (1.0 - terminated) * q_next
 
+    @dispatch
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """The TD loss on a batch of transitions (keys in the class docstring); see the class for the outputs.
         A missing key raises ``KeyError``."""
