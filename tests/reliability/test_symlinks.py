@@ -21,7 +21,7 @@ def finished(tmp_path_factory):
     return out
 
 
-@pytest.mark.parametrize("name", ["actor.pt", "final_eval.json", "metrics.csv", "checkpoints/latest"])
+@pytest.mark.parametrize("name", ["actor.safetensors", "final_eval.json", "metrics.csv", "checkpoints/latest"])
 def test_a_symlink_out_of_the_run_folder_is_refused_and_its_target_untouched(finished, tmp_path, name):
     outside = tmp_path / f"precious-{name.replace('/', '-')}"
     outside.write_bytes(b"a person's file")
@@ -38,10 +38,10 @@ def test_a_symlink_out_of_the_run_folder_is_refused_and_its_target_untouched(fin
 
 
 def test_a_symlink_inside_the_run_folder_is_replaced_not_written_through(finished):
-    kept = finished / "kept-actor.pt"
+    kept = finished / "kept-actor.safetensors"
     kept.write_bytes(b"an earlier actor")
-    (finished / "actor.pt").unlink()
-    (finished / "actor.pt").symlink_to(kept)
+    (finished / "actor.safetensors").unlink()
+    (finished / "actor.safetensors").symlink_to(kept)
     train(finished, "collector.total_frames=100", resume=True)
     assert kept.read_bytes() == b"an earlier actor"
-    assert not (finished / "actor.pt").is_symlink() and (finished / "actor.pt").stat().st_size > 1000
+    assert not (finished / "actor.safetensors").is_symlink() and (finished / "actor.safetensors").stat().st_size > 1000

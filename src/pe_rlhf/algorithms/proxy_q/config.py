@@ -230,7 +230,7 @@ def method_name(cfg: DictConfig) -> str:
     """
     physics, selector = cfg.physics.enabled, cfg.selector.enabled
     disturbance = bool(cfg.disturbance.enabled)
-    if str(cfg.loss.get("objective", "paper")) == "proxy_value":
+    if str(OmegaConf.select(cfg, "loss.objective", default="paper")) == "proxy_value":
         if disturbance:
             raise invalid_value("disturbance.enabled", True, "needs loss.objective=paper (HAIM-DRL's disturbance "
                                 "critic is a PERLHFLoss term)")
