@@ -128,7 +128,7 @@ class ProxyValueLoss(KeyedLoss, LossModule):
     # -- the TorchRL contract (pe_rlhf.objectives.contract: in_keys, out_keys, make_value_estimator TD0 only) ----
     def _loss_in_keys(self) -> list[NestedKey]:
         keys = self.tensor_keys
-        states = [k for k in self.qvalue_network.in_keys if k != self.policy_action_key]  # the loss sets the action
+        states = self.state_keys
         flags = [keys.intervention, keys.intervention_start] + ([] if self.physics_labels else [keys.mentor_selected])
         return [keys.action, keys.behavior_action, *flags, *next_keys([keys.terminated]), *self.actor_network.in_keys,
                 *states, *next_keys(self.actor_network.in_keys), *next_keys(states)]
@@ -149,10 +149,14 @@ class ProxyValueLoss(KeyedLoss, LossModule):
         """Where the actor writes its pre-tanh output (:func:`pe_rlhf.modules.make_deterministic_actor`), or None."""
         return "action_preactivation" if "action_preactivation" in self.actor_network.out_keys else None
 
+    @property
+    def state_keys(self) -> list[NestedKey]:
+        """The critics' inputs other than the action (the loss sets the action it values)."""
+        return [k for k in self.qvalue_network.in_keys if k != self.policy_action_key]
+
     def _q(self, params, tensordict: TensorDictBase, action: torch.Tensor) -> torch.Tensor:
         """``(copies, rows)`` values of the critics under ``params`` at ``action``."""
-        state_keys = [k for k in self.qvalue_network.in_keys if k != self.policy_action_key]
-        td = tensordict.select(*state_keys, strict=False)
+        td = tensordict.select(*self.state_keys, strict=False)
         td.set(self.policy_action_key, action)
         return self._vmap_q(td, params).get(self.tensor_keys.state_action_value).squeeze(-1)
 
@@ -189,8 +193,7 @@ class ProxyValueLoss(KeyedLoss, LossModule):
         behavior, agent = tensordict.get(keys.behavior_action), tensordict.get(keys.action)
         rows = tensordict.shape[0]
         # one critic pass: the executed action on every row, then the agent's proposal on the takeover rows
-        state = tensordict.select(*[k for k in self.qvalue_network.in_keys if k != self.policy_action_key],
-                                  strict=False)
+        state = tensordict.select(*self.state_keys, strict=False)
         both = torch.cat([state, state[takeover]], 0)
         q_all = self._q(self.qvalue_network_params, both, torch.cat([behavior, agent[takeover]], 0))
         q_exec, q_agent = q_all[:, :rows], q_all[:, rows:]

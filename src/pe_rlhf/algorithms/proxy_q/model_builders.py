@@ -26,7 +26,7 @@ def build_loss(cfg, actor) -> tuple[PERLHFLoss | ProxyValueLoss, ForeachSoftUpda
     """The loss of ``cfg.loss``: ``ProxyValueLoss`` (``objective=proxy_value``) or ``PERLHFLoss``, the latter with
     HAIM-DRL's disturbance critic when ``disturbance.enabled``."""
     hidden, n = tuple(cfg.loss.hidden), obs_dim(cfg)
-    layer_norm = bool(cfg.loss.get("layer_norm", False))
+    layer_norm = bool(cfg.loss.layer_norm)
     if uses_proxy_values(cfg):
         c = cfg.loss
         loss = ProxyValueLoss(actor, make_qvalue(n, hidden=hidden, layer_norm=layer_norm),
