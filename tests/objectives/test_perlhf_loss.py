@@ -64,8 +64,11 @@ def critic(net: nn.Module) -> TensorDictModule:
 
 def make_loss(qvalue=None, intervention_qvalue=None, seed: int = 0, **kwargs) -> PERLHFLoss:
     """A loss with twin intervention critics (the authors' code), so the min over copies is exercised;
-    the default single critic (the paper) has its own test."""
+    the default single critic (the paper) has its own test. Failure rows' target is the usual terminal 0
+    (``failure_target="zero"``), which the closed-form targets below assume; ``batch_min``, the default, has its
+    own tests."""
     kwargs.setdefault("num_intervention_qvalue_nets", 2)
+    kwargs.setdefault("failure_target", "zero")
     torch.manual_seed(seed)
     actor = make_actor(OBS_DIM, ACTION_DIM, HIDDEN)
     qvalue = qvalue if qvalue is not None else make_qvalue(OBS_DIM, ACTION_DIM, HIDDEN)
@@ -627,6 +630,7 @@ def disturbance_loss(disturbance_qvalue=None, seed: int = 0, **kwargs) -> PERLHF
     disturbance_qvalue = disturbance_qvalue if disturbance_qvalue is not None else make_qvalue(OBS_DIM, ACTION_DIM,
                                                                                               HIDDEN)
     kwargs.setdefault("num_intervention_qvalue_nets", 2)
+    kwargs.setdefault("failure_target", "zero")
     return PERLHFLoss(actor, qvalue, intervention_qvalue, disturbance_qvalue, **kwargs)
 
 
@@ -882,3 +886,12 @@ def test_a_crash_is_worth_more_than_driving_on_unless_failures_are_pinned_low(on
     assert crash_zero > drive_zero + 1.0  # the defect: a crash beats driving on
     crash_min, drive_min = fitted("batch_min")
     assert crash_min <= drive_min + 0.3  # measured: -3.0 against -2.7
+
+
+def test_the_default_failure_target_is_the_recipes():
+    """One default per fact: the component's default is what the PE-RLHF recipe runs."""
+    from pe_rlhf.algorithms.proxy_q.config_schema import default
+
+    loss = PERLHFLoss(make_actor(OBS_DIM, ACTION_DIM, HIDDEN), make_qvalue(OBS_DIM, ACTION_DIM, HIDDEN),
+                      make_qvalue(OBS_DIM, ACTION_DIM, HIDDEN))
+    assert loss.failure_target == default("loss.failure_target") == "batch_min"

@@ -113,8 +113,8 @@ class PERLHFLoss(KeyedLoss, LossModule):
             over both), ~20% more time per update.
         disturbance_weight: the actor's weight on ``Q_dist`` (used with a disturbance critic).
         num_disturbance_qvalue_nets: copies of ``Q_dist`` (default 2, a twin: HAIM-DRL's own twin critic).
-        failure_target: ``"zero"``, ``"bootstrap"`` or ``"batch_min"``: the proxy-Q target of rows that
-            end in a failure (module docstring).
+        failure_target: ``"batch_min"`` (default, the recipes' value), ``"zero"`` or ``"bootstrap"``: the
+            proxy-Q target of rows that end in a failure (module docstring).
         fused_critics: ``True`` (default) evaluates ``make_qvalue`` critics from their stacked parameters
             (:mod:`~pe_rlhf.objectives.fused_critics`): each state's first-layer product once for every
             critic and every action it is valued at. The same values and gradients up to the order of a
@@ -189,7 +189,7 @@ class PERLHFLoss(KeyedLoss, LossModule):
         action_dim: int | None = None,
         disturbance_weight: float = 1.0,
         num_disturbance_qvalue_nets: int = 2,
-        failure_target: str = "zero",
+        failure_target: str = "batch_min",
         fused_critics: bool = True,
         gap_action: str = "agent",
     ) -> None:
