@@ -32,9 +32,9 @@ def time_backend(backend: str, workers: int, frames: int, frames_per_batch: int,
                                  f"collector.total_frames={frames}", f"collector.frames_per_batch={frames_per_batch}",
                                  "collector.warmup_steps=1", "collector.learning_starts=0"])
     started = time.perf_counter()
-    ensemble = builders.build_q_ensemble(cfg)
-    env, _ = builders.build_local_env(cfg, driving_config(cfg), ensemble)
-    collector = builders.build_collector(cfg, env, None, ensemble=ensemble)  # policy None: random actions
+    value_source = builders.build_value_source(cfg)
+    env, _ = builders.build_local_env(cfg, driving_config(cfg), value_source)
+    collector = builders.build_collector(cfg, env, None, value_source=value_source)  # policy None: random actions
     counted, t_first = 0, None
     try:
         for batch in collector:

@@ -42,7 +42,7 @@ from pe_rlhf.physics import IDMMobilPolicy, PhysicsConfig
 from pe_rlhf.runtime.checkpoint import find_checkpoint, load_checkpoint
 from pe_rlhf.runtime.config import driving_config
 from pe_rlhf.runtime.world import build_mentor
-from pe_rlhf.algorithms.proxy_q.builders import build_physics, build_q_ensemble, epsilon_select
+from pe_rlhf.algorithms.proxy_q.builders import build_physics, build_value_source, epsilon_select
 from pe_rlhf.algorithms.proxy_q.config import load_config
 
 
@@ -53,7 +53,7 @@ def parse_scenes(text: str) -> list[int]:
 
 def load_run(run: Path):
     cfg = load_config(run / "config.yaml", apply_profile=False)
-    ensemble = build_q_ensemble(cfg)
+    ensemble = build_value_source(cfg)
     if ensemble is None:
         raise SystemExit(f"{run}: selector.enabled is false (a HACO run has no ensemble)")
     load_checkpoint(find_checkpoint(run / "checkpoints"), modules={"ensemble": ensemble}, optimizers={},
@@ -119,7 +119,7 @@ def expert_setup(mentor: str, value: str, epsilon_run: float | None = None):
     forecast: nothing to fit), ``selector.epsilon_select=epsilon_run`` when given."""
     extra = [] if epsilon_run is None else [f"selector.epsilon_select={epsilon_run}"]
     cfg = load_config(overrides=[f"mentor.name={mentor}", f"selector.value={value}", *extra])
-    return cfg, build_q_ensemble(cfg).eval()
+    return cfg, build_value_source(cfg).eval()
 
 
 def measure(run: Path | str, args, setup=None) -> dict:

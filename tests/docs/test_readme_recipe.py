@@ -37,7 +37,7 @@ def readme():
 @pytest.fixture(scope="module")
 def recipe():
     cfg = load_config(None, overrides=[])  # recipes/pe_rlhf/config.yaml, as train.py composes it with no override
-    env = builders.build_train_env(cfg, driving_config(cfg), build_mentor(cfg), builders.build_q_ensemble(cfg),
+    env = builders.build_train_env(cfg, driving_config(cfg), build_mentor(cfg), builders.build_value_source(cfg),
                                    builders.build_physics(cfg))
     loss, _ = builders.build_loss(cfg, builders.build_actor(cfg))
     return {"env": env, "loss": loss, "cfg": cfg}

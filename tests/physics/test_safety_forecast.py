@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from pe_rlhf.physics import SafetyForecastConfig, SafetyForecastValue, time_to_failure
-from pe_rlhf.algorithms.proxy_q.builders import build_q_ensemble, build_selector
+from pe_rlhf.algorithms.proxy_q.builders import build_value_source, build_selector
 from pe_rlhf.algorithms.proxy_q.config import load_config
 from pe_rlhf.algorithms.proxy_q.value_expert import parse_value_source
 from pe_rlhf.transforms import HybridActionSelector
@@ -109,7 +109,7 @@ def test_the_selector_executes_the_mentor_unless_its_action_fails_sooner():
 def test_recipe_value_source_forecast():
     assert parse_value_source("forecast") == ("forecast", None)
     cfg = load_config(overrides=["selector.value=forecast", "selector.epsilon_select=0"])
-    value = build_q_ensemble(cfg)
+    value = build_value_source(cfg)
     assert isinstance(value, SafetyForecastValue)
     selector = build_selector(cfg, value)
     assert selector.epsilon_select == 0.0

@@ -58,7 +58,7 @@ def test_observation_size_follows_the_env_config():
     assert obs_dim(cfg) == env.observation_spec["observation"].shape[-1] == 70
     td = builders.build_actor(cfg)(env.reset())
     assert td["action"].shape == (2,)
-    assert builders.build_q_ensemble(cfg).values(td["observation"].unsqueeze(0), td["action"].unsqueeze(0)).shape \
+    assert builders.build_value_source(cfg).values(td["observation"].unsqueeze(0), td["action"].unsqueeze(0)).shape \
         == (2, 1)
 
 

@@ -36,10 +36,10 @@ TOTAL_FRAMES = 300  # 6 batches of 50 (25 per worker)
 def multisync_run(one_thread_module):
     cfg = load_config(overrides=MULTISYNC + ["collector.warmup_steps=2", "selector.value=expert",  # weights to push
                                              "selector.epsilon_select=-1e9"])
-    ensemble, actor = builders.build_q_ensemble(cfg), builders.build_actor(cfg)
+    value_source, actor = builders.build_value_source(cfg), builders.build_actor(cfg)
     loss, soft_update = builders.build_loss(cfg, actor)
     optimizers = builders.build_optimizers(cfg, loss)
-    collector = builders.build_collector(cfg, None, actor, TOTAL_FRAMES, ensemble=ensemble)
+    collector = builders.build_collector(cfg, None, actor, TOTAL_FRAMES, value_source=value_source)
     run = {"batches": []}
     try:
         for i, batch in enumerate(collector):
@@ -52,7 +52,7 @@ def multisync_run(one_thread_module):
             elif i == 1:
                 with torch.no_grad():
                     run["main_loc"] = actor(batch.select("observation").clone()).get("loc")
-                    for p in ensemble.parameters():  # in place, after the workers started
+                    for p in value_source.parameters():  # in place, after the workers started
                         p.fill_(float("nan"))
     finally:
         builders.shutdown_collector(collector)
@@ -114,22 +114,22 @@ def test_invalid_backend_combinations_name_the_field():
 
 def test_ray_kwargs_and_ensemble_push_without_ray(monkeypatch):
     cfg = load_config(overrides=MULTISYNC + ["selector.value=warmup"])  # two fresh ensembles differ until pushed
-    ensemble, actor = builders.build_q_ensemble(cfg), builders.build_actor(cfg)
+    value_source, actor = builders.build_value_source(cfg), builders.build_actor(cfg)
     factories = [functools.partial(builders.make_worker_env, cfg, worker_index=i, num_workers=2) for i in range(2)]
-    kwargs = builders.ray_collector_kwargs(cfg, factories, actor, TOTAL_FRAMES, ensemble)
+    kwargs = builders.ray_collector_kwargs(cfg, factories, actor, TOTAL_FRAMES, value_source)
     assert kwargs["num_collectors"] == 2 and kwargs["sync"] and kwargs["collector_class"] is Collector
     assert [f.keywords["worker_index"] for f in kwargs["create_env_fn"]] == [0, 1]
-    assert all(f.keywords["ensemble"] is ensemble for f in kwargs["create_env_fn"])
-    # push_ensemble_weights: the path it loads into exists on a worker's collector
-    worker_ensemble = builders.build_q_ensemble(cfg)
-    env = builders.make_worker_env(cfg, 1, 2, ensemble=worker_ensemble)
+    assert all(f.keywords["value_source"] is value_source for f in kwargs["create_env_fn"])
+    # push_value_source_weights: the path it loads into exists on a worker's collector
+    worker_ensemble = builders.build_value_source(cfg)
+    env = builders.make_worker_env(cfg, 1, 2, value_source=worker_ensemble)
     assert env.transform[-1].warmup_steps == math.ceil(int(cfg.collector.warmup_steps) / 2)
     worker = Collector(env, actor, frames_per_batch=10, total_frames=10)
     remote = types.SimpleNamespace(cascade_execute=types.SimpleNamespace(remote=worker.cascade_execute))
     monkeypatch.setitem(sys.modules, "ray", types.SimpleNamespace(get=lambda futures: futures))
-    builders.push_ensemble_weights(types.SimpleNamespace(remote_collectors=[remote]), ensemble)
+    builders.push_value_source_weights(types.SimpleNamespace(remote_collectors=[remote]), value_source)
     obs, act = torch.randn(3, obs_dim(cfg)), torch.rand(3, 2) * 2 - 1
-    torch.testing.assert_close(worker_ensemble.values(obs, act), ensemble.values(obs, act))
+    torch.testing.assert_close(worker_ensemble.values(obs, act), value_source.values(obs, act))
     worker.shutdown()
 
 
@@ -151,25 +151,25 @@ def test_smoke_training_with_multisync_writes_finite_metrics(tmp_path):
 # -- collector.backend=ray on a real local Ray instance --------------------------------------------
 def test_ray_collector_on_local_ray_acts_with_the_pushed_value_estimator():
     """Two Ray workers collect PE-RLHF batches; after the learner's ensemble is pushed with NaN weights
-    (``push_ensemble_weights``, what the trainer does after the warm-up fit), every takeover in the next
+    (``push_value_source_weights``, what the trainer does after the warm-up fit), every takeover in the next
     batches executes physics: the workers select with the learner's estimator, not their own copies."""
     ray = pytest.importorskip("ray")
     cfg = load_config(overrides=["profile=smoke", "collector.backend=ray", "collector.num_workers=2",
                                  "collector.frames_per_batch=50", "collector.warmup_steps=2", "selector.value=warmup",
                                  "selector.epsilon_select=-1e9", "mentor.name=adversarial"])
-    ensemble, actor = builders.build_q_ensemble(cfg), builders.build_actor(cfg)
+    value_source, actor = builders.build_value_source(cfg), builders.build_actor(cfg)
     ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
     batches = []
     try:
-        collector = builders.build_collector(cfg, None, actor, 200, ensemble=ensemble)
+        collector = builders.build_collector(cfg, None, actor, 200, value_source=value_source)
         try:
             for i, batch in enumerate(collector):
                 batches.append(batch.clone())
                 if i == 0:
                     with torch.no_grad():
-                        for p in ensemble.parameters():
+                        for p in value_source.parameters():
                             p.fill_(float("nan"))
-                    builders.push_ensemble_weights(collector, ensemble)
+                    builders.push_value_source_weights(collector, value_source)
         finally:
             builders.shutdown_collector(collector)
     finally:

@@ -24,7 +24,7 @@ def test_the_recipe_is_the_sweeps_haco_and_builds_no_selector():
     assert to_container(recipe) == to_container(sweep)
     assert method_name(recipe) == "HACO"
     env = builders.build_train_env(recipe, driving_config(recipe), build_mentor(recipe),
-                                   builders.build_q_ensemble(recipe), builders.build_physics(recipe))
+                                   builders.build_value_source(recipe), builders.build_physics(recipe))
     intervention = builders.find_transform(env, InterventionTransform)
     assert intervention.selector is None and intervention.physics is None
     env.close()

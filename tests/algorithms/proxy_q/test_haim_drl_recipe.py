@@ -38,7 +38,7 @@ def test_builders_add_the_transform_after_the_takeover_and_a_disturbance_critic(
     assert "disturbance_qvalue" in builders.build_optimizers(cfg, loss)
     pe_rlhf = load_config(overrides=["profile=smoke"])
     env = builders.build_train_env(pe_rlhf, driving_config(pe_rlhf), build_mentor(pe_rlhf),
-                                   builders.build_q_ensemble(pe_rlhf), builders.build_physics(pe_rlhf))
+                                   builders.build_value_source(pe_rlhf), builders.build_physics(pe_rlhf))
     assert not any(isinstance(t, TrafficDisturbanceCost) for t in env.transform)
     env.close()
     loss, _ = builders.build_loss(pe_rlhf, builders.build_actor(pe_rlhf))

@@ -90,7 +90,7 @@ def test_bad_value_sources_name_the_field(value, message):
 
 def test_the_recipe_builds_a_frozen_expert_and_never_fits_it(sac_run):
     cfg = load_config(overrides=["profile=smoke", f"selector.value=expert:{sac_run}"])
-    ensemble = builders.build_q_ensemble(cfg)
+    ensemble = builders.build_value_source(cfg)
     assert ensemble.num_members == min(4, cfg.selector.num_members) and not builders.value_is_fitted(cfg)
     assert not any(p.requires_grad for p in ensemble.parameters())
     assert builders.value_is_fitted(load_config(overrides=["selector.value=warmup"]))

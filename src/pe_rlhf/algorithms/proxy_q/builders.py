@@ -21,7 +21,7 @@ seed ``seed + i``, mentor seed ``mentor.seed + i``, warm-up ``ceil(collector.war
 steps. The Q-ensemble reaches the workers in shared
 memory (``share_memory()``; handed over through ``create_env_kwargs``, which torch.multiprocessing
 pickles with storage handles), so the main process's in-place fits are seen at once; ray workers
-cannot share memory and get the weights from :func:`push_ensemble_weights`. Policy weights reach
+cannot share memory and get the weights from :func:`push_value_source_weights`. Policy weights reach
 the workers at :func:`sync_policy`.
 """
 
@@ -55,6 +55,9 @@ from pe_rlhf.transforms import (
 
 # The default world's observation (240 lidar beams); obs_dim(cfg) follows env.lidar_beams and env.lane_features.
 OBS_DIM = 250
+# What the selector values actions with: a Q-ensemble (fitted on the warm-up, or the packaged expert) or the physics
+# forecast (seconds until a failure).
+ValueSource = QEnsemble | SafetyForecastValue
 # A worker's Q-ensemble seen from its collector, in TorchRL's attribute-path notation (cascade_execute);
 # make_worker_env checks that the InterventionTransform is the env's last transform when there is a selector.
 # (HAIM-DRL's TrafficDisturbanceCost comes after it, and HAIM-DRL has no selector.)
@@ -107,7 +110,7 @@ def warmup_selection(cfg) -> bool:
     return not value_is_fitted(cfg) and cfg.collector.warmup_policy is None
 
 
-def build_q_ensemble(cfg) -> QEnsemble | None:
+def build_value_source(cfg) -> ValueSource | None:
     """The selector's value estimator: a fresh ensemble to fit on the warm-up, or the frozen expert that
     ``selector.value`` names (at most ``selector.num_members`` of its members), the physics forecast
     (``forecast``: seconds until a failure, nothing to fit), or None without a selector."""
@@ -136,15 +139,15 @@ def epsilon_select(cfg) -> float:
     return EPSILON_BY_VALUE[parse_value_source(cfg.selector.value)[0]]
 
 
-def build_selector(cfg, ensemble: QEnsemble) -> HybridActionSelector:
+def build_selector(cfg, value_source: ValueSource) -> HybridActionSelector:
     margin, imminent = cfg.selector.switch_margin, cfg.selector.imminent_failure
-    return HybridActionSelector(ensemble, epsilon_select(cfg), cfg.selector.variance_threshold,
+    return HybridActionSelector(value_source, epsilon_select(cfg), cfg.selector.variance_threshold,
                                 switch_margin=None if margin is None else float(margin),
                                 veto_patience=int(cfg.selector.veto_patience),
                                 imminent_failure=None if imminent is None else float(imminent))
 
 
-def build_train_env(cfg, env_config, mentor: Mentor, ensemble: QEnsemble | None, physics,
+def build_train_env(cfg, env_config, mentor: Mentor, value_source: ValueSource | None, physics,
                     worker_index: int = 0, num_workers: int = 1):
     """The TorchRL driving env with ``InterventionTransform`` (PE-RLHF with a selector, HACO without), then
     ``TrafficDisturbanceCost`` with ``disturbance.enabled`` (HAIM-DRL; after it: it reads the takeover flag).
@@ -154,8 +157,8 @@ def build_train_env(cfg, env_config, mentor: Mentor, ensemble: QEnsemble | None,
     """
     env = make_env(env_config)
     selector = None
-    if ensemble is not None:
-        selector = build_selector(cfg, ensemble)
+    if value_source is not None:
+        selector = build_selector(cfg, value_source)
     warmup_steps = math.ceil(int(cfg.collector.warmup_steps) / num_workers)
     env.append_transform(InterventionTransform(mentor, selector, physics if selector else None,
                                                warmup_steps=warmup_steps, warmup_driver=build_warmup_driver(cfg),
@@ -169,17 +172,17 @@ def build_train_env(cfg, env_config, mentor: Mentor, ensemble: QEnsemble | None,
     return env
 
 
-def build_local_env(cfg, env_config, ensemble: QEnsemble | None):
+def build_local_env(cfg, env_config, value_source: ValueSource | None):
     """``(env, mentor)`` of this process for the ``single`` backend; ``(None, None)`` for the
     multi-worker backends, whose workers build their own (:func:`make_worker_env`)."""
     if str(cfg.collector.backend) != "single":
         return None, None
     mentor = build_mentor(cfg)
-    return build_train_env(cfg, env_config, mentor, ensemble, build_physics(cfg)), mentor
+    return build_train_env(cfg, env_config, mentor, value_source, build_physics(cfg)), mentor
 
 
 def make_worker_env(cfg, worker_index: int, num_workers: int, start_frames: int = 0,
-                    ensemble: QEnsemble | None = None):
+                    value_source: ValueSource | None = None):
     """Collector worker ``worker_index``'s env: its own mentor, physics, selector over ``ensemble``.
 
     A top-level function, so ``functools.partial(make_worker_env, cfg, ...)`` pickles into a worker.
@@ -188,9 +191,9 @@ def make_worker_env(cfg, worker_index: int, num_workers: int, start_frames: int 
     """
     from pe_rlhf.runtime.config import driving_config
 
-    env = build_train_env(cfg, driving_config(cfg), build_mentor(cfg, worker_index), ensemble, build_physics(cfg),
+    env = build_train_env(cfg, driving_config(cfg), build_mentor(cfg, worker_index), value_source, build_physics(cfg),
                           worker_index, num_workers)
-    transform = env.transform[-1] if ensemble is not None else find_transform(env, InterventionTransform)
+    transform = env.transform[-1] if value_source is not None else find_transform(env, InterventionTransform)
     if not isinstance(transform, InterventionTransform):
         raise TypeError(f"a worker env must end with its InterventionTransform (WORKER_ENSEMBLE_PATH), "
                            f"got {type(transform).__name__}")
@@ -205,7 +208,7 @@ def exploration_type(cfg) -> ExplorationType:
     return ExplorationType.RANDOM if str(cfg.collector.exploration) == "random" else ExplorationType.DETERMINISTIC
 
 
-def build_collector(cfg, env, actor, total_frames: int | None = None, *, ensemble: QEnsemble | None = None,
+def build_collector(cfg, env, actor, total_frames: int | None = None, *, value_source: ValueSource | None = None,
                     start_frames: int = 0) -> BaseCollector:
     """The ``collector.backend`` collector (see the module docstring) of ``total_frames`` frames.
 
@@ -227,21 +230,21 @@ def build_collector(cfg, env, actor, total_frames: int | None = None, *, ensembl
     if backend == "ray":
         from torchrl.collectors.distributed import RayCollector
 
-        return RayCollector(**ray_collector_kwargs(cfg, factories, actor, frames, ensemble))
-    if ensemble is not None:
-        ensemble.share_memory()
+        return RayCollector(**ray_collector_kwargs(cfg, factories, actor, frames, value_source))
+    if value_source is not None:
+        value_source.share_memory()
     collector_class = MultiSyncCollector if backend == "multisync" else MultiAsyncCollector
     extra = {"cat_results": "stack"} if backend == "multisync" else {}
     # num_threads: keep this process's thread count (TorchRL would lower it by the number of workers).
     return collector_class(factories, actor, frames_per_batch=frames_per_batch, total_frames=frames,
-                           create_env_kwargs=[{"ensemble": ensemble}] * n, num_threads=torch.get_num_threads(),
+                           create_env_kwargs=[{"value_source": value_source}] * n, num_threads=torch.get_num_threads(),
                            **explore, **extra)
 
 
-def ray_collector_kwargs(cfg, factories: list, actor, total_frames: int, ensemble: QEnsemble | None) -> dict:
+def ray_collector_kwargs(cfg, factories: list, actor, total_frames: int, value_source: ValueSource | None) -> dict:
     """``RayCollector`` arguments: one ``Collector`` per worker, sync (batches ``(N, T / N)``). The
-    ensemble travels by value in each factory (no shared memory): :func:`push_ensemble_weights`."""
-    return {"create_env_fn": [functools.partial(f, ensemble=ensemble) for f in factories], "policy": actor,
+    ensemble travels by value in each factory (no shared memory): :func:`push_value_source_weights`."""
+    return {"create_env_fn": [functools.partial(f, value_source=value_source) for f in factories], "policy": actor,
             "frames_per_batch": int(cfg.collector.frames_per_batch), "total_frames": int(total_frames),
             "collector_class": Collector, "num_collectors": len(factories), "sync": True,
             "collector_kwargs": {"exploration_type": exploration_type(cfg)}}
@@ -265,15 +268,15 @@ def shutdown_collector(collector: BaseCollector) -> None:
     torch.set_num_threads(threads)
 
 
-def push_ensemble_weights(collector: BaseCollector, ensemble: QEnsemble | None) -> None:
+def push_value_source_weights(collector: BaseCollector, value_source: ValueSource | None) -> None:
     """After a fit: copy the ensemble's weights into workers that cannot share memory (ray). A no-op
     for ``single`` (same object) and the multiprocessing backends (shared memory)."""
     remotes = getattr(collector, "remote_collectors", None)
-    if ensemble is None or not remotes:
+    if value_source is None or not remotes:
         return
     import ray
 
-    state = {k: v.detach().clone() for k, v in ensemble.state_dict().items()}
+    state = {k: v.detach().clone() for k, v in value_source.state_dict().items()}
     ray.get([r.cascade_execute.remote(f"{WORKER_ENSEMBLE_PATH}.load_state_dict", state) for r in remotes])
 
 

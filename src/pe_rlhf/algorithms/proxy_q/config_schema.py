@@ -87,8 +87,9 @@ class MentorConfig:
 
 
 @dataclass
-class PhysicsConfig:
-    """pi_phy: IDM (longitudinal) + MOBIL (lane changes), paper parameters."""
+class PhysicsSettings:
+    """The recipe's physics group, pi_phy: IDM (longitudinal) + MOBIL (lane changes), paper parameters (the policy's own
+    parameters are :class:`pe_rlhf.physics.PhysicsConfig`)."""
 
     enabled: bool = knob(True, rule_bool)
     see_obstacles: bool = knob(False, rule_bool)  # true: IDM brakes for static obstacles and MOBIL passes them
@@ -282,7 +283,7 @@ class RecipeConfig:
     # beside the lidar (pe_rlhf.envs.observation): every Table-1 row uses it.
     env: dict[str, Any] = open_group({"lane_features": True})
     mentor: MentorConfig = field(default_factory=MentorConfig)
-    physics: PhysicsConfig = field(default_factory=PhysicsConfig)
+    physics: PhysicsSettings = field(default_factory=PhysicsSettings)
     selector: SelectorConfig = field(default_factory=SelectorConfig)
     collector: CollectorConfig = field(default_factory=CollectorConfig)
     replay_buffer: ReplayBufferConfig = field(default_factory=ReplayBufferConfig)
@@ -304,7 +305,7 @@ def _fields(schema: type, prefix: str = ""):
             yield f"{prefix}{f.name}", f
 
 
-_GROUPS = {cls.__name__: cls for cls in (MentorConfig, PhysicsConfig, SelectorConfig, CollectorConfig,
+_GROUPS = {cls.__name__: cls for cls in (MentorConfig, PhysicsSettings, SelectorConfig, CollectorConfig,
                                          ReplayBufferConfig, OptimConfig, LossConfig, DisturbanceConfig,
                                          LoggerConfig, EvalConfig, CheckpointConfig, ActorSelectionConfig)}
 

@@ -210,8 +210,8 @@ class ProxyQLearner(Learner):
 
         self.cfg, self.logger, self.name = cfg, logger, method_name(cfg)  # the logger: the test episode's video
         self.env_config = driving_config(cfg)
-        self.ensemble = builders.build_q_ensemble(cfg)
-        self.env, self.mentor = builders.build_local_env(cfg, self.env_config, self.ensemble)  # None: workers own them
+        self.value_source = builders.build_value_source(cfg)
+        self.env, self.mentor = builders.build_local_env(cfg, self.env_config, self.value_source)  # None: workers own them
         self.learner_actor = builders.build_actor(cfg)
         self.loss, soft_update = builders.build_loss(cfg, self.learner_actor)
         self.device = builders.learner_device(cfg)  # None: the CPU, acting with the learner's actor
@@ -227,10 +227,11 @@ class ProxyQLearner(Learner):
                                          int(cfg.selector.refresh_steps))
         # selector.refresh_data=all: refreshes also fit on the online transitions (the ensemble sees what the
         # hybrid policy's actions led to in the states the agent visits, crashes under physics' actions included)
-        self._ensemble_sees_online = (self.ensemble is not None and int(cfg.selector.refresh_every) > 0
+        self._value_source_sees_online = (self.value_source is not None and int(cfg.selector.refresh_every) > 0
                                       and str(cfg.selector.refresh_data) == "all")
         self.counters = Counters()
-        modules = {"loss": self.loss, **({"ensemble": self.ensemble} if self.ensemble is not None else {})}
+        # "ensemble": the checkpoint's name for the value source's module (a forecast has no parameters)
+        modules = {"loss": self.loss, **({"ensemble": self.value_source} if self.value_source is not None else {})}
         self.objects = {"modules": modules, "optimizers": self.optimizers,
                         "replay_buffers": {"replay": self.replay, "warmup": self.warmup_buffer}}
         self.transform = builders.find_transform(self.env, InterventionTransform) if self.env is not None else None
@@ -335,7 +336,7 @@ class ProxyQLearner(Learner):
         rng = capture_rng() if self.resumed_collection is not None else None
         policy = builders.build_collection_policy(self.cfg, self.updater.policy)
         self.collector = builders.build_collector(self.cfg, self.env, policy, remaining,
-                                                  ensemble=self.ensemble, start_frames=int(self.counters.frames))
+                                                  value_source=self.value_source, start_frames=int(self.counters.frames))
         if self.resumed_collection is not None:  # continue the checkpoint's episode, not the collector's reset
             restore_collection(self.collector, self.transform, *self.resumed_collection)
             restore_rng(rng)  # as if no collector had been built here (the original's went on stepping)
@@ -358,14 +359,14 @@ class ProxyQLearner(Learner):
         warmup = c.frames < int(cfg.collector.warmup_steps)
         m = batch_metrics(batch)
         c.add(m, warmup)
-        if warmup or self._ensemble_sees_online:  # online: the executed (hybrid) action and its env reward
+        if warmup or self._value_source_sees_online:  # online: the executed (hybrid) action and its env reward
             self.warmup_buffer.extend(ensemble_transitions(batch).reshape(-1))  # (N, T) with multisync: time last
         if warmup:
             batch = relabel_warmup(batch, keep_agent_action=bool(cfg.collector.warmup_gap))
             m["intervention_cost"] = 0.0  # forced mentor driving is no takeover: nothing is charged
         with self.updater.lock:  # the learner thread samples from it
             self.replay.extend(batch.reshape(-1))
-        self._fit_ensemble()
+        self._fit_value_source()
         backlog = self.updater.backlog  # updates owed by earlier batches, not run yet: 0 while the learner keeps up
         if c.frames >= int(cfg.collector.learning_starts):
             self.updater.notify_frames(int(m["steps"]))  # sync: the updates these frames pay for run here
@@ -390,18 +391,18 @@ class ProxyQLearner(Learner):
         return {"takeover": f"{row['train/takeover_rate']:.2f}", "violations": int(self.counters.safety_violations),
                 "succ": f"{row['train/success_rate_total']:.2f}"}
 
-    def _fit_ensemble(self) -> None:
+    def _fit_value_source(self) -> None:
         cfg = self.cfg
-        fit_steps = self.schedule.due(int(self.counters.frames)) if self.ensemble is not None else 0
+        fit_steps = self.schedule.due(int(self.counters.frames)) if self.value_source is not None else 0
         if not fit_steps:
             return
-        fit_q_ensemble(self.ensemble, self.warmup_buffer, steps=fit_steps, batch_size=int(cfg.selector.batch_size),
+        fit_q_ensemble(self.value_source, self.warmup_buffer, steps=fit_steps, batch_size=int(cfg.selector.batch_size),
                        gamma=float(cfg.loss.gamma), lr=float(cfg.selector.lr),
                        target_noise=float(cfg.selector.target_noise), tau=float(cfg.selector.tau),
                        loss=str(cfg.selector.fit_loss), seed=int(cfg.seed))
-        self.ensemble.requires_grad_(False)
+        self.value_source.requires_grad_(False)
         if self.collector is not None:
-            builders.push_ensemble_weights(self.collector, self.ensemble)
+            builders.push_value_source_weights(self.collector, self.value_source)
 
     def paused(self):
         return self.updater.paused()
