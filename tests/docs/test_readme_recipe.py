@@ -20,8 +20,8 @@ from pe_rlhf.transforms import InterventionTransform
 pytestmark = [pytest.mark.usefixtures("one_thread_module"),
               pytest.mark.filterwarnings("ignore:No target network updater")]
 
-LOSS_SETTINGS = ("gamma", "gap_coef", "gap_margin", "psi", "intervention_weight", "cosine_cost", "use_reward",
-                 "intervention_critic_action", "failure_target", "gap_action", "fused_critics", "num_qvalue_nets",
+LOSS_SETTINGS = ("gamma", "gap_coef", "psi", "intervention_weight", "cosine_cost", "use_reward",
+                 "failure_target", "fused_critics", "num_qvalue_nets",
                  "has_disturbance_critic", "disturbance_weight")
 SELECTOR_SETTINGS = ("epsilon_select", "variance_threshold", "switch_margin", "veto_patience", "imminent_failure")
 

@@ -66,8 +66,7 @@ def assert_close(actual: torch.Tensor, expected: torch.Tensor, what: str) -> Non
 VARIANTS = {
     "default": {},
     "twin_q_int": {"num_intervention_qvalue_nets": 2},
-    "behavior_q_int_hinge": {"intervention_critic_action": "behavior", "gap_margin": 0.5},
-    "policy_gap": {"gap_action": "policy"},
+    "zero_target_three_q": {"failure_target": "zero", "num_qvalue_nets": 3},
     "batch_min_reward": {"failure_target": "batch_min", "use_reward": True},
     "bootstrap_no_cosine": {"failure_target": "bootstrap", "cosine_cost": False},
     "disturbance": {"disturbance": True},

@@ -6,22 +6,15 @@ One update reads a batch of transitions ``(s, a_AV, a_exec, I, I_start, C_int, s
   zero reward and SAC's entropy bonus,
   ``y = gamma * (1 - terminated) * (min_k Q'_k(s', a') - alpha * log pi(a'|s'))``, ``a' ~ pi(s')``,
   ``L_td = 0.5 * sum_k mean (Q_k(s, a_exec) - y)^2``; plus the CQL-style gap on takeover steps
-  ``L_gap = gap_coef * sum_k mean(I * (Q_k(s, a_AV) - Q_k(s, a_exec)))`` (the paper's linear gap), or
-  with ``gap_margin=m`` the hinge ``gap_coef * sum_k mean(I * relu(Q_k(s, a_AV) - Q_k(s, a_exec) + m))``:
-  the same gradient until the agent's action is valued ``m`` below the executed one, then none. The
-  linear gap has no minimum: the critic can always lower ``Q(s, a_AV)`` further, and through the
-  TD target every value sinks with it (measured: ``Q(s, a_exec)`` drifting ~ -1 per 100 env steps
-  when every warm-up step is a takeover, without settling). The hinge keeps the ranking and bounds it.
-  ``gap_action`` says which action ``a_AV`` the gap lowers: ``"agent"`` (the proposal stored when the row
-  was collected: the paper's and the authors' code) or ``"policy"`` (a fresh sample of the current actor,
-  detached: CQL's ``rho = pi``). The stored proposal keeps lowering the values of what an *earlier* policy
-  did in takeover states; once the actor has moved on, nothing lowers what it does now there, and values of
-  actions the data never holds (full-lock steering, say) can end up on top. The fresh sample follows the
-  actor. Same cost: the critic is evaluated at one action per takeover row either way.
+  ``L_gap = gap_coef * sum_k mean(I * (Q_k(s, a_AV) - Q_k(s, a_exec)))`` (the paper's linear gap, at the
+  agent's stored proposal ``a_AV``). The linear gap has no minimum: the critic can always lower
+  ``Q(s, a_AV)`` further, and through the TD target every value sinks with it (measured: ``Q(s, a_exec)``
+  drifting ~ -1 per 100 env steps when every warm-up step is a takeover, without settling);
+  :class:`~pe_rlhf.objectives.ProxyValueLoss` bounds the values instead. (A hinge gap and a gap at the
+  current actor's sample were options until their measurements lost: docs/results/claims/README.md.)
 - ``loss_intervention_qvalue``: twin intervention critics,
   ``Q_int(s, a) <- C + gamma * (1 - terminated) * min_k Q_int'_k(s', a')`` with ``a`` the agent's
-  action (the paper's equation; ``intervention_critic_action="behavior"`` trains on the executed
-  action instead) and ``C = I_start * (1 - cos(a_AV, a_exec))`` (or ``I_start`` with
+  action (the paper's equation) and ``C = I_start * (1 - cos(a_AV, a_exec))`` (or ``I_start`` with
   ``cosine_cost=False``).
 - ``loss_actor``: ``alpha * log pi(a|s) - psi * min_k Q_k(s, a) + beta * min_k Q_int_k(s, a)``
   (``+ disturbance_weight * min_k Q_dist_k(s, a)`` with a disturbance critic).
@@ -67,9 +60,7 @@ from torchrl.objectives.utils import _vmap_func
 from pe_rlhf.objectives.contract import KeyedLoss, next_keys
 from pe_rlhf.objectives.fused_critics import detached, evaluate, mlp_plan, project_state
 
-INTERVENTION_CRITIC_ACTIONS = ("agent", "behavior")
 FAILURE_TARGETS = ("zero", "bootstrap", "batch_min")
-GAP_ACTIONS = ("agent", "policy")
 
 
 def _rsample_log_prob(dist) -> tuple[torch.Tensor, torch.Tensor]:
@@ -101,12 +92,8 @@ class PERLHFLoss(KeyedLoss, LossModule):
         gap_coef: weight of the CQL-style gap (the authors' code uses 10).
         psi, intervention_weight: the actor's weights on ``Q`` and ``Q_int`` (``beta``); 0 turns off
             "intervention minimisation".
-        gap_margin: ``None`` (the paper's linear gap) or a margin ``m >= 0`` for the hinge gap (see above).
-        gap_action: ``"agent"`` (default: the stored proposal, the paper) or ``"policy"`` (a fresh sample of
-            the current actor): the action whose value the gap lowers on takeover rows (see above).
         cosine_cost: ``False`` charges a constant 1 at each takeover start ("w/o cosine similarity").
         use_reward: add the env reward to the proxy-Q target (a reward-using variant; default off).
-        intervention_critic_action: ``"agent"`` (the paper) or ``"behavior"``.
         gamma, alpha_init, target_entropy (``"auto"`` = -dim(action)), fixed_alpha, num_qvalue_nets.
         num_intervention_qvalue_nets: copies of ``Q_int``. 1 (default) is the paper's single intervention
             value function (parameters omega in its Algorithm 1); 2 is the authors' code (a twin, min
@@ -177,12 +164,10 @@ class PERLHFLoss(KeyedLoss, LossModule):
         num_intervention_qvalue_nets: int = 1,
         gamma: float = 0.99,
         gap_coef: float = 10.0,
-        gap_margin: float | None = None,
         psi: float = 1.0,
         intervention_weight: float = 1.0,
         cosine_cost: bool = True,
         use_reward: bool = False,
-        intervention_critic_action: str = "agent",
         alpha_init: float = 1.0,
         fixed_alpha: bool = False,
         target_entropy: float | str = "auto",
@@ -191,27 +176,17 @@ class PERLHFLoss(KeyedLoss, LossModule):
         num_disturbance_qvalue_nets: int = 2,
         failure_target: str = "batch_min",
         fused_critics: bool = True,
-        gap_action: str = "agent",
     ) -> None:
         super().__init__()
-        if gap_action not in GAP_ACTIONS:
-            raise ValueError(f"PERLHFLoss gap_action={gap_action!r} is invalid; allowed: {list(GAP_ACTIONS)}")
-        self.gap_action = gap_action
         if failure_target not in FAILURE_TARGETS:
             raise ValueError(f"PERLHFLoss failure_target={failure_target!r} is invalid; "
                              f"allowed: {list(FAILURE_TARGETS)}")
         self.failure_target = failure_target
-        if intervention_critic_action not in INTERVENTION_CRITIC_ACTIONS:
-            raise ValueError(f"intervention_critic_action={intervention_critic_action!r}; "
-                             f"allowed: {list(INTERVENTION_CRITIC_ACTIONS)}")
         for name, value in (("gamma", gamma), ("gap_coef", gap_coef), ("psi", psi),
                             ("intervention_weight", intervention_weight), ("disturbance_weight", disturbance_weight)):
             if not math.isfinite(value) or value < 0 or (name == "gamma" and value > 1):
                 raise ValueError(f"PERLHFLoss {name}={value} is invalid: must be finite and >= 0"
                                  + (" and <= 1" if name == "gamma" else ""))
-        if gap_margin is not None and (isinstance(gap_margin, bool) or not isinstance(gap_margin, (int, float))
-                                       or not math.isfinite(gap_margin) or gap_margin < 0):
-            raise ValueError(f"PERLHFLoss gap_margin={gap_margin!r} is invalid: None or a finite number >= 0")
         if not (math.isfinite(alpha_init) and alpha_init > 0):  # log(alpha_init) is the parameter
             raise ValueError(f"PERLHFLoss alpha_init={alpha_init} is invalid: must be finite and > 0")
         for name, value in (("num_qvalue_nets", num_qvalue_nets),
@@ -229,10 +204,8 @@ class PERLHFLoss(KeyedLoss, LossModule):
                                    create_target_params=True)
         self.num_qvalue_nets = num_qvalue_nets
         self.gamma, self.gap_coef, self.psi = gamma, gap_coef, psi
-        self.gap_margin = None if gap_margin is None else float(gap_margin)
         self.intervention_weight = intervention_weight
         self.cosine_cost, self.use_reward = cosine_cost, use_reward
-        self.intervention_critic_action = intervention_critic_action
         if target_entropy == "auto":
             if action_dim is None:
                 spec = getattr(actor_network, "spec", None)
@@ -327,13 +300,12 @@ class PERLHFLoss(KeyedLoss, LossModule):
                        new_action: torch.Tensor, takeover: torch.Tensor) -> dict[str, torch.Tensor]:
         """Every critic value one update needs, ``(copies, rows)`` each: ``next_<c>`` (target critics at
         ``(s', a')``, no grad), ``q`` (at the executed action on all rows, then at the agent's on the takeover
-        rows), ``q_int`` (at the agent's or executed action), ``q_dist`` (executed), and ``<c>_new`` (at the
+        rows), ``q_int`` (at the agent's action), ``q_dist`` (executed), and ``<c>_new`` (at the
         new sample, critic parameters detached), for ``c`` in ``q``, ``q_int`` (and ``q_dist``)."""
         keys = self.tensor_keys
         behavior_action, agent_action = tensordict.get(keys.behavior_action), tensordict.get(keys.action)
-        gap_action = agent_action if self.gap_action == "agent" else new_action.detach()
-        actions = {"q": torch.cat([behavior_action, gap_action[takeover]], 0), "q_dist": behavior_action,
-                   "q_int": agent_action if self.intervention_critic_action == "agent" else behavior_action}
+        actions = {"q": torch.cat([behavior_action, agent_action[takeover]], 0), "q_dist": behavior_action,
+                   "q_int": agent_action}
         critics = ["q", "q_int"] + (["q_dist"] if self.has_disturbance_critic else [])
         fused = [c for c in critics if self._fusable(c, tensordict)]
         values = self._fused_values(fused, tensordict, next_td, next_action, new_action, takeover, actions)
@@ -416,8 +388,6 @@ class PERLHFLoss(KeyedLoss, LossModule):
         loss_td = 0.5 * (q_behavior - target_q).pow(2).mean(-1).sum(0)
         q_failure = q_behavior.detach().mean(0)[failure].mean() if failure.any() else q_all.new_zeros(())
         gap = q_agent - q_behavior[:, takeover]
-        if self.gap_margin is not None:
-            gap = torch.relu(gap + self.gap_margin)
         loss_gap = self.gap_coef * gap.sum(-1).sum(0) / batch
 
         q_int = values["q_int"]

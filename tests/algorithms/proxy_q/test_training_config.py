@@ -225,7 +225,6 @@ INVALID = [
     ("loss.tau", "0"),
     ("loss.tau", "1.2"),
     ("loss.gap_coef", "-1"),
-    ("loss.intervention_critic_action", "mentor"),
     ("loss.target_entropy", "high"),
     ("loss.alpha_init", "0"),
     ("loss.hidden", "[]"),

@@ -73,10 +73,10 @@ def test_named_sweep_configs_load_and_validate():
         cells = expand(spec)
         check_cell_configs(cells)
         counts[spec.name] = len(cells)
-    assert counts == {"claims": 2 * 2 * 5 + 5, "claims_forecast": 2 * 5, "claims_hinge": 2 * 5,
+    assert counts == {"claims": 2 * 2 * 5 + 5, "claims_forecast": 2 * 5,
                       "claims_balanced": 2 * 5, "claims_select": 2 * 5, "claims_amateur": 2 * 5,
                       "claims_collapsing": 2 * 3 + 3, "claims_adversarial": 2 * 3, "claims_patience": 2 * 5,
-                      "claims_policy_gap": 2 * 2 * 5, "claims_warmup_selection": 2 * 5,
+                      "claims_warmup_selection": 2 * 5,
                       "epsilon_sensitivity": 5 * 2 * 3 + 3, "loss_ablations": 6 * 3, "lower_bound": 4 * 2 * 3 + 3,
                       "mentor_proficiency": 12, "physics_ablation": 9 + 3, "warmup": 2 * 4 * 3,
                       "learner_calibration": 6 * 3,

@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 from typing import Any, Optional
 
 from pe_rlhf.modules.precision import PRECISIONS
-from pe_rlhf.objectives.perlhf import FAILURE_TARGETS, GAP_ACTIONS
+from pe_rlhf.objectives.perlhf import FAILURE_TARGETS
 from pe_rlhf.physics.safety import RECOVERIES
 from pe_rlhf.runtime.config_compose import RecipeSchema
 from pe_rlhf.runtime.config_rules import (
@@ -44,7 +44,6 @@ from pe_rlhf.algorithms.proxy_q.config_profiles import PROFILES
 BACKENDS = ("single", "multisync", "multiasync", "ray")
 FIT_LOSSES = ("mean", "member")
 REFRESH_DATA = ("warmup", "all")
-INTERVENTION_CRITIC_ACTIONS = ("agent", "behavior")
 # paper: PERLHFLoss (HACO's proxy-Q, as the paper); proxy_value: ProxyValueLoss (PVP's bounded proxy values)
 OBJECTIVES = ("paper", "proxy_value")
 
@@ -209,13 +208,9 @@ class LossConfig:
     gamma: float = knob(0.99, rule_number(0, 1))
     tau: float = knob(0.005, rule_number(0, 1, lo_open=True))
     gap_coef: float = knob(10.0, rule_number(0))  # "CQL temperature"
-    # null: the paper's linear gap; a number m: hinge relu(Q(s,a_AV) - Q(s,a_exec) + m)
-    gap_margin: Optional[float] = knob(None, rule_optional(rule_number(0)))
     psi: float = knob(1.0, rule_number(0))
     intervention_weight: float = knob(1.0, rule_number(0))  # beta
     cosine_cost: bool = knob(True, rule_bool)  # false: the "w/o cosine takeover cost" ablation
-    # agent (the paper) | behavior
-    intervention_critic_action: str = knob("agent", rule_choice(*INTERVENTION_CRITIC_ACTIONS))
     num_qvalue_nets: int = knob(2, rule_int(1))  # twin Q
     num_intervention_qvalue_nets: int = knob(1, rule_int(1))
     target_entropy: Any = knob("auto", rule_target_entropy)  # auto = -dim(A) = -2 (authors' code); the paper: 2.0
@@ -226,9 +221,6 @@ class LossConfig:
     # proxy-Q target of a crash/off-road end: zero (terminal 0) | bootstrap (as if it went on) | batch_min (the
     # batch's lowest)
     failure_target: str = knob("batch_min", rule_choice(*FAILURE_TARGETS))
-    # the action the gap lowers on takeover rows: agent (the stored proposal, the paper) | policy (a fresh sample
-    # of the current actor)
-    gap_action: str = knob("agent", rule_choice(*GAP_ACTIONS))
     # evaluate the critics from their stacked parameters, each state's first-layer product once (same values up
     # to float summation order; false: through the modules)
     fused_critics: bool = knob(True, rule_bool)

@@ -43,15 +43,14 @@ def build_loss(cfg, actor) -> tuple[PERLHFLoss | ProxyValueLoss, ForeachSoftUpda
         actor, make_qvalue(n, hidden=hidden, layer_norm=layer_norm), make_qvalue(n, hidden=hidden), disturbance,
         num_qvalue_nets=int(cfg.loss.num_qvalue_nets),
         gamma=float(cfg.loss.gamma), gap_coef=float(cfg.loss.gap_coef),
-        gap_margin=None if cfg.loss.gap_margin is None else float(cfg.loss.gap_margin), psi=float(cfg.loss.psi),
+        psi=float(cfg.loss.psi),
         intervention_weight=float(cfg.loss.intervention_weight), cosine_cost=bool(cfg.loss.cosine_cost),
-        intervention_critic_action=str(cfg.loss.intervention_critic_action),
         num_intervention_qvalue_nets=int(cfg.loss.num_intervention_qvalue_nets),
         alpha_init=float(cfg.loss.alpha_init),
         target_entropy=target_entropy if target_entropy == "auto" else float(target_entropy), action_dim=2,
         disturbance_weight=float(cfg.loss.disturbance_weight),
         num_disturbance_qvalue_nets=int(cfg.loss.num_disturbance_qvalue_nets),
-        failure_target=str(cfg.loss.failure_target), gap_action=str(cfg.loss.gap_action),
+        failure_target=str(cfg.loss.failure_target),
         fused_critics=bool(cfg.loss.fused_critics),
     )
     return loss, ForeachSoftUpdate(loss, tau=float(cfg.loss.tau))
