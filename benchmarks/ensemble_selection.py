@@ -33,7 +33,7 @@ from tqdm import tqdm
 
 from pe_rlhf.envs import DrivingConfig, scene_seeds
 from pe_rlhf.envs.torchrl_env import make_env, unwrap
-from pe_rlhf.evaluation.policies import make_policy
+from pe_rlhf.evaluation.policies import PhysicsPolicyAdapter, make_policy, register_policy
 from pe_rlhf.mentors import make_mentor
 from pe_rlhf.physics import IDMMobilPolicy, PhysicsConfig, SafetyForecastConfig, SafetyForecastValue
 from pe_rlhf.algorithms.proxy_q.value_expert import load_value_expert, parse_value_source
@@ -51,6 +51,26 @@ class RegisteredAgent:
         obs = td.get("observation").numpy()
         td.set("action", torch.as_tensor(np.asarray(self.policy(obs, self.sim), np.float32)))
         return td
+
+
+class CrawlingDriver:
+    """IDM-MOBIL (seeing obstacles) steering with a throttle that holds ``speed`` m/s: a car that drives safely and
+    makes little progress (the learned agents' crawl), for the takeover-rate table (``crawl-4`` holds 4 m/s)."""
+
+    def __init__(self, speed: float):
+        self.speed, self.physics = float(speed), PhysicsPolicyAdapter(PhysicsConfig(see_obstacles=True))
+
+    def reset(self) -> None:
+        self.physics.reset()
+
+    def __call__(self, obs, env) -> np.ndarray:
+        action = self.physics(obs, env)
+        action[1] = min(float(action[1]), float(np.clip(0.5 * (self.speed - env.vehicle.speed), -1.0, 1.0)))
+        return action
+
+
+for _speed in (2, 4, 6):
+    register_policy(f"crawl-{_speed}", lambda seed, v=_speed: CrawlingDriver(v), overwrite=True)
 
 
 def drive(mentor: str | None, scenes: list[int], split: str = "train", selector: HybridActionSelector | None = None,
@@ -171,12 +191,16 @@ def warmup_rows(mentors: list[str], scenes: list[int], split: str, value: str, e
     return results
 
 
-def takeover_rates(mentors: list[str], drivers: list[str], scenes: list[int], split: str = "train") -> list[dict]:
+def takeover_rates(mentors: list[str], drivers: list[str], scenes: list[int], split: str = "train",
+                   mentor_kwargs: dict | None = None) -> list[dict]:
     """Each mentor's takeover share of steps watching each driver, its takeovers executed as they come (HACO):
-    a competent driver should rarely be taken over, a bad one nearly always."""
+    a competent driver should rarely be taken over, a bad one nearly always (``crawl-<v>``: a safe driver holding
+    v m/s, which a person would take over for making no progress)."""
     world = DrivingConfig(split=split, lane_features=True)
-    return [{"mentor": m, "row": f"driver={d}", "driver": d,
-             **drive(m, scenes, split, world=world, progress=f"{m} watching {d}", driver=d)}
+    label = "".join(f" {k}={v}" for k, v in (mentor_kwargs or {}).items())
+    return [{"mentor": m + label, "row": f"driver={d}", "driver": d,
+             **drive(m, scenes, split, world=world, progress=f"{m} watching {d}", driver=d,
+                     mentor_kwargs=mentor_kwargs)}
             for m in mentors for d in drivers]
 
 
@@ -238,6 +262,8 @@ def main(argv=None) -> list[dict]:
     parser.add_argument("--takeover-rates", nargs="*", metavar="DRIVER", default=None,
                         help="instead: each mentor's takeover share watching these drivers (e.g. idm-mobil-oracle "
                              "idm-mobil idm-mobil-blind random)")
+    parser.add_argument("--stall-speed", type=float, default=None, help="with --takeover-rates: the mentors' "
+                        "SkillProfile.stall_speed [m/s] (the stall test's speed)")
     parser.add_argument("--warmup", action="store_true", help="instead: the warm-up's executed actions, the mentor "
                         "alone and under the selector (selector.warmup_selection)")
     parser.add_argument("--json", type=Path, default=None)
@@ -249,7 +275,8 @@ def main(argv=None) -> list[dict]:
         results = warmup_rows(args.mentors, scenes, args.split, args.value, args.epsilons)
     elif args.takeover_rates is not None:
         results = takeover_rates(args.mentors, args.takeover_rates or ["idm-mobil-oracle", "idm-mobil",
-                                                                       "idm-mobil-blind", "random"], scenes, args.split)
+                                                                       "idm-mobil-blind", "random"], scenes, args.split,
+                                 None if args.stall_speed is None else {"stall_speed": args.stall_speed})
     else:
         results = measure(args.mentors, scenes, args.split, args.value, args.epsilons, args.switch_margins,
                       args.variance_threshold, args.forecast_hold, args.forecast_recovery,

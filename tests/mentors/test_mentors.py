@@ -292,6 +292,20 @@ def test_a_stalled_car_is_taken_over_after_stall_steps(test_env):
     assert not any(waiting.step(test_env, agent, np.array([0.0, 0.1])) for _ in range(30))
 
 
+def test_the_stall_speed_is_a_mentor_setting(test_env):
+    """SkillProfile.stall_speed reaches the rule: a car at 4 m/s going nowhere is taken over under a 6 m/s stall
+    test, never under the default 2 m/s."""
+    assert make_mentor("professional").rule.stall_speed == 2.0
+    agent, plan = np.array([0.0, 0.0]), np.array([0.0, 0.5])
+    for stall_speed, taken in ((2.0, False), (6.0, True)):
+        mentor = make_mentor("professional", stall_speed=stall_speed)
+        _reset(test_env, mentor, 1000)
+        test_env.unwrapped.vehicle.speed = 4.0
+        assert any(mentor.rule.step(test_env, agent, plan) for _ in range(25)) == taken
+    with pytest.raises(ValueError, match="stall_speed"):
+        make_mentor("professional", stall_speed=-1.0)
+
+
 def test_an_adversarial_seek_grabs_the_wheel(test_env):
     mentor = make_mentor("adversarial", seed=0, danger_seeking=1.0)
     _reset(test_env, mentor, 1000)

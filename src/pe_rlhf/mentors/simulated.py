@@ -53,7 +53,9 @@ class SkillProfile:
     road user or the road edge (adversarial); ``speed_factor``: desired speed scale;
     ``free_level``/``min_span``: the takeover rule's parameters; ``steer_tolerance`` /
     ``throttle_tolerance``: the std of its belief over acceptable actions (``TakeoverRule.sigma``: how
-    much driving style it accepts); ``seek_takes_over``: a danger seek grabs the wheel (an adversarial
+    much driving style it accepts); ``stall_speed`` [m/s]: the takeover rule's stall test fires once the car has
+    been slower than this for 2 s while the mentor's own plan accelerates (``TakeoverRule.stall_speed``);
+    ``seek_takes_over``: a danger seek grabs the wheel (an adversarial
     mentor takes over *in order to* do harm, so its takeovers executed as they come lower a driver's success).
     """
 
@@ -68,6 +70,7 @@ class SkillProfile:
     min_span: int = 10
     steer_tolerance: float = 0.6
     throttle_tolerance: float = 0.6
+    stall_speed: float = 2.0
     seek_takes_over: bool = False
 
     def __post_init__(self) -> None:
@@ -103,6 +106,8 @@ class SkillProfile:
             bad("free_level", "must be in (0, 1)")
         if self.min_span < 1:
             bad("min_span", "must be >= 1 step")
+        if not (math.isfinite(self.stall_speed) and self.stall_speed >= 0.0):
+            bad("stall_speed", "must be a finite speed >= 0 m/s")
         for name in ("steer_tolerance", "throttle_tolerance"):
             if not 0.0 < getattr(self, name) <= 2.0:
                 bad(name, "must be in (0, 2] (normalised action units)")
@@ -162,7 +167,8 @@ class SimulatedMentor(Mentor):
         self.rng = np.random.default_rng(self.seed)
         self.driver = PrivilegedDriver(driver_params or driver_params_for(self.profile))
         self.rule = rule or TakeoverRule(sigma=(self.profile.steer_tolerance, self.profile.throttle_tolerance),
-                                         free_level=self.profile.free_level, min_span=self.profile.min_span)
+                                         free_level=self.profile.free_level, min_span=self.profile.min_span,
+                                         stall_speed=self.profile.stall_speed)
         self.controlled_steps = 0
         self._resume = False
         self._new_episode(None)
