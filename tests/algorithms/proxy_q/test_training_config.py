@@ -208,7 +208,6 @@ INVALID = [
     ("selector.variance_threshold", "-0.5"),
     ("selector.num_members", "0"),
     ("selector.hidden", "[256,-3]"),
-    ("selector.fit_loss", "median"),
     ("selector.lr", "0"),
     ("collector.total_frames", "0"),
     ("collector.frames_per_batch", "40000"),

@@ -97,32 +97,6 @@ def test_amateur_fatigue_is_logged_and_grows_with_the_steps_it_controls(tmp_path
     assert fatigue[-1] >= 1.0 + 2.0 * online_takeover_steps / 1000 - 1e-6
 
 
-def test_refresh_on_all_data_feeds_online_transitions_to_the_ensemble(tmp_path):
-    """selector.refresh_data=all: the ensemble's buffer holds every step (executed action, env reward);
-    the default keeps only the warm-up's."""
-    import torch
-
-    from pe_rlhf.algorithms.proxy_q.builders import build_replay_buffer
-    from pe_rlhf.runtime.checkpoint import find_checkpoint, load_checkpoint
-    from pe_rlhf.algorithms.proxy_q.config import load_config
-
-    sizes = {}
-    for data in ("warmup", "all"):
-        out = tmp_path / data
-        load_pe_rlhf_recipe().main(["profile=smoke", "eval.video=false", "selector.refresh_every=100",
-                             f"selector.refresh_data={data}", "--out", str(out)])
-        cfg = load_config(out / "config.yaml", apply_profile=False)
-        warmup = build_replay_buffer(cfg)
-        load_checkpoint(find_checkpoint(out / "checkpoints"), modules={}, optimizers={},
-                        replay_buffers={"warmup": warmup}, strict=False, restore_rng_state=False)
-        sizes[data] = len(warmup)
-        stored = warmup[:]
-        # the fitted action is the executed one, with the env's reward beside it
-        assert torch.equal(stored["action"], stored["next", "behavior_action"])
-        assert torch.isfinite(stored["next", "reward"]).all()
-    assert sizes == {"warmup": 100, "all": 300}
-
-
 def test_the_same_seed_gives_the_same_metrics(smoke_run, tmp_path):
     """Two runs of one seed on one machine: every logged number and the final evaluation agree (timings aside)."""
     again = load_pe_rlhf_recipe().main([*SMOKE_RUN, "--out", str(tmp_path)])

@@ -49,20 +49,12 @@ def test_ensemble_transitions_fit_the_executed_action_and_its_successor():
 
 def test_relabel_warmup_keeps_the_agent_proposals_as_takeovers_without_charging_them():
     batch = _batch()
-    out = relabel_warmup(batch, keep_agent_action=True)
+    out = relabel_warmup(batch)
     assert torch.equal(out["action"], batch["action"])
     assert out["next", "intervention"].all()
     assert not out["next", "intervention_start"].any()
     assert out["next", "intervention_cost"].abs().sum() == 0
     assert batch["next", "intervention_start"].any()  # the input is not modified
-
-
-def test_relabel_warmup_without_gap_makes_the_mentor_action_the_agent_one():
-    batch = _batch()
-    out = relabel_warmup(batch, keep_agent_action=False)
-    assert torch.equal(out["action"], batch["next", "behavior_action"])
-    assert not out["next", "intervention"].any()
-    assert out["next", "intervention_cost"].abs().sum() == 0
 
 
 def test_batch_metrics_counts():

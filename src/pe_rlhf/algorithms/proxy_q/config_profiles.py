@@ -40,7 +40,7 @@ PROFILES: dict[str, dict[str, Any]] = {
     # CI: the whole loop (warm-up, ensemble fit, updates, eval, checkpoint) in about a minute.
     "smoke": {
         "env": {"horizon": 100, "min_blocks": 2, "max_blocks": 2},
-        "selector": {"num_members": 2, "hidden": [32, 32], "warmup_fit_steps": 20, "refresh_steps": 10,
+        "selector": {"num_members": 2, "hidden": [32, 32], "warmup_fit_steps": 20,
                      "batch_size": 32},
         "collector": {"total_frames": 300, "frames_per_batch": 50, "warmup_steps": 100, "learning_starts": 50},
         "replay_buffer": {"size": 1000, "batch_size": 32},

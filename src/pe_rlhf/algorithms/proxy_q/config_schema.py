@@ -42,8 +42,6 @@ from pe_rlhf.runtime.config_schema import ActorSelectionConfig, LoggerConfig, kn
 from pe_rlhf.algorithms.proxy_q.config_profiles import PROFILES
 
 BACKENDS = ("single", "multisync", "multiasync", "ray")
-FIT_LOSSES = ("mean", "member")
-REFRESH_DATA = ("warmup", "all")
 # paper: PERLHFLoss (HACO's proxy-Q, as the paper); proxy_value: ProxyValueLoss (PVP's bounded proxy values)
 OBJECTIVES = ("paper", "proxy_value")
 
@@ -132,12 +130,6 @@ class SelectorConfig:
     num_members: int = knob(5, rule_int(1))  # 1 = the "w/o ensemble" ablation
     hidden: list[int] = knob([256, 256], rule_hidden)
     warmup_fit_steps: int = knob(3000, rule_int(0))  # gradient steps fitting the ensemble once warm-up ends
-    refresh_every: int = knob(0, rule_int(0))  # env steps between refits after warm-up; 0 = frozen (the paper)
-    refresh_steps: int = knob(500, rule_int(0))
-    # what a refresh fits on: warmup (the warm-up data only) | all (plus every online transition, executed action
-    # and env reward)
-    refresh_data: str = knob("warmup", rule_choice(*REFRESH_DATA))
-    fit_loss: str = knob("mean", rule_choice(*FIT_LOSSES))  # mean (the paper's loss on mean_k Q_k) | member
     target_noise: float = knob(0.1, rule_number(0))  # sigma of a' = pi_expert(s') + N(0, sigma)
     # Polyak rate of the fit's target copy (not in the paper; see benchmarks/ensemble_fit_scale.py)
     tau: float = knob(0.005, rule_number(0, 1, lo_open=True))
@@ -152,8 +144,6 @@ class CollectorConfig:
     warmup_steps: int = knob(10000, rule_int(0))  # the mentor drives alone; its data trains the Q-ensemble
     # a run folder (PE-RLHF/HACO or baseline): its trained actor drives the warm-up instead (expert-policy warm-up)
     warmup_policy: Optional[str] = knob(None, rule_optional(rule_string))
-    # warm-up steps enter the loss as takeovers of the agent's proposals (false: mentor's action stands as the agent's)
-    warmup_gap: bool = knob(True, rule_bool)
     learning_starts: int = knob(100, rule_int(0))
     # random: sample the policy while collecting | deterministic: propose its mode
     exploration: str = knob("random", rule_choice("random", "deterministic"))

@@ -12,8 +12,7 @@ from pe_rlhf.transforms.keys import (BEHAVIOR_ACTION, INTERVENTION, INTERVENTION
 
 
 def ensemble_transitions(batch: TensorDictBase) -> TensorDictBase:
-    """Transitions as the Q-ensemble is fitted on them (warm-up ones, and online ones with
-    ``selector.refresh_data=all``): a copy whose ``action`` is the executed
+    """Transitions as the Q-ensemble is fitted on them (the warm-up's): a copy whose ``action`` is the executed
     (mentor's) ``("next", "behavior_action")`` and whose ``("next", "action")`` is the action executed
     at ``s'`` (:func:`~pe_rlhf.modules.add_next_actions`), so ``Q_k`` estimates the value of the
     *driving* policy. (The root ``action`` of a collected batch is the agent's proposal, which the
@@ -26,27 +25,22 @@ def ensemble_transitions(batch: TensorDictBase) -> TensorDictBase:
     return add_next_actions(td)
 
 
-def relabel_warmup(batch: TensorDictBase, keep_agent_action: bool = True) -> TensorDictBase:
+def relabel_warmup(batch: TensorDictBase) -> TensorDictBase:
     """Warm-up transitions as the loss should see them. The mentor (or the warm-up policy) drove every
     step, so nothing is charged: ``intervention_start`` and ``intervention_cost`` are zeroed (forced
     driving is no takeover).
 
-    ``keep_agent_action=True`` (the recipe's default, ``collector.warmup_gap``): the agent's
-    proposals stay as ``action`` and every step stays flagged ``intervention``, so the CQL-style gap
-    ranks the mentor's action above the agent's from the first update (the paper's warm-up, in which
-    "human mentors continuously control the agent"). ``False``: the mentor's executed action stands as
-    the agent's and no step is flagged (gap 0: the warm-up teaches only through the TD term).
+    The agent's proposals stay as ``action`` and every step stays flagged ``intervention``, so the
+    CQL-style gap ranks the mentor's action above the agent's from the first update (the paper's warm-up,
+    in which "human mentors continuously control the agent"). (Letting the mentor's action stand as the
+    agent's, gap 0, was an option until its measurement lost: docs/experiments/first-30k-runs.md.)
 
     Reads/writes ``action`` and, under ``next``: ``behavior_action``, ``intervention``,
     ``intervention_start``, ``intervention_cost`` (shapes ``(T, 2)`` / ``(T, 1)``).
     """
     batch = batch.clone(False)
     nxt = batch.get("next")
-    if keep_agent_action:
-        nxt.set(INTERVENTION, torch.ones_like(nxt.get(INTERVENTION)))
-    else:
-        batch.set("action", nxt.get(BEHAVIOR_ACTION).clone())
-        nxt.set(INTERVENTION, torch.zeros_like(nxt.get(INTERVENTION)))
+    nxt.set(INTERVENTION, torch.ones_like(nxt.get(INTERVENTION)))
     nxt.set(INTERVENTION_START, torch.zeros_like(nxt.get(INTERVENTION_START)))
     nxt.set(INTERVENTION_COST, torch.zeros_like(nxt.get(INTERVENTION_COST)))
     return batch

@@ -7,7 +7,7 @@ checkpoints, ``--resume``, finish); its batches, and :meth:`ProxyQLearner.learn`
    expert-policy warm-up) drives ``collector.warmup_steps`` steps (the transform forces it); the
    transitions, with the env reward, fill a warm-up buffer and, relabelled
    (:func:`~pe_rlhf.algorithms.proxy_q.steps.relabel_warmup`), the replay buffer;
-2. the Q-ensemble is fitted on the warm-up data (then frozen, or refreshed on a schedule);
+2. the Q-ensemble is fitted on the warm-up data, then frozen (the paper);
 3. online: the collector runs the actor inside ``InterventionTransform`` (mentor + physics +
    selector); ``optim.updates_per_batch`` PERLHFLoss updates follow every batch once
    ``collector.learning_starts`` frames are in (with ``optim.async_updates``, at the same ratio in a
@@ -221,14 +221,8 @@ class ProxyQLearner(Learner):
         self.replay = builders.build_replay_buffer(cfg, balanced=True)
         self.warmup_buffer = builders.build_replay_buffer(cfg)
         fitted = cfg.selector.enabled and builders.value_is_fitted(cfg)  # an expert is frozen: never fitted
-        self.schedule = EnsembleSchedule(int(cfg.collector.warmup_steps),
-                                         int(cfg.selector.refresh_every) if fitted else 0,
-                                         int(cfg.selector.warmup_fit_steps) if fitted else 0,
-                                         int(cfg.selector.refresh_steps))
-        # selector.refresh_data=all: refreshes also fit on the online transitions (the ensemble sees what the
-        # hybrid policy's actions led to in the states the agent visits, crashes under physics' actions included)
-        self._value_source_sees_online = (self.value_source is not None and int(cfg.selector.refresh_every) > 0
-                                      and str(cfg.selector.refresh_data) == "all")
+        self.schedule = EnsembleSchedule(int(cfg.collector.warmup_steps), 0,
+                                         int(cfg.selector.warmup_fit_steps) if fitted else 0)
         self.counters = Counters()
         # "ensemble": the checkpoint's name for the value source's module (a forecast has no parameters)
         modules = {"loss": self.loss, **({"ensemble": self.value_source} if self.value_source is not None else {})}
@@ -359,10 +353,10 @@ class ProxyQLearner(Learner):
         warmup = c.frames < int(cfg.collector.warmup_steps)
         m = batch_metrics(batch)
         c.add(m, warmup)
-        if warmup or self._value_source_sees_online:  # online: the executed (hybrid) action and its env reward
+        if warmup:
             self.warmup_buffer.extend(ensemble_transitions(batch).reshape(-1))  # (N, T) with multisync: time last
         if warmup:
-            batch = relabel_warmup(batch, keep_agent_action=bool(cfg.collector.warmup_gap))
+            batch = relabel_warmup(batch)
             m["intervention_cost"] = 0.0  # forced mentor driving is no takeover: nothing is charged
         with self.updater.lock:  # the learner thread samples from it
             self.replay.extend(batch.reshape(-1))
@@ -399,7 +393,7 @@ class ProxyQLearner(Learner):
         fit_q_ensemble(self.value_source, self.warmup_buffer, steps=fit_steps, batch_size=int(cfg.selector.batch_size),
                        gamma=float(cfg.loss.gamma), lr=float(cfg.selector.lr),
                        target_noise=float(cfg.selector.target_noise), tau=float(cfg.selector.tau),
-                       loss=str(cfg.selector.fit_loss), seed=int(cfg.seed))
+                       seed=int(cfg.seed))
         self.value_source.requires_grad_(False)
         if self.collector is not None:
             builders.push_value_source_weights(self.collector, self.value_source)
