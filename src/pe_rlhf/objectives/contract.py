@@ -27,11 +27,23 @@ pass are in ``tests/objectives/test_loss_contract.py``: a new loss adds one entr
 from __future__ import annotations
 
 from collections.abc import Iterable
+from dataclasses import dataclass
 
 from tensordict.utils import NestedKey, unravel_key
 from torchrl.objectives.utils import ValueEstimators, dispatch_value_estimator
 
-__all__ = ["KeyedLoss", "UnsupportedValueEstimator", "ordered_keys"]
+__all__ = ["KeyedLoss", "TakeoverKeys", "UnsupportedValueEstimator", "ordered_keys"]
+
+
+@dataclass
+class TakeoverKeys:
+    """The keys :class:`~pe_rlhf.transforms.InterventionTransform` writes that every takeover loss reads (the
+    agent's proposal at the root, the rest under ``next``); a loss's ``_AcceptedKeys`` extends it."""
+
+    action: NestedKey = "action"
+    behavior_action: NestedKey = ("next", "behavior_action")
+    intervention: NestedKey = ("next", "intervention")
+    intervention_start: NestedKey = ("next", "intervention_start")
 
 
 class UnsupportedValueEstimator(ValueError, NotImplementedError):

@@ -57,7 +57,7 @@ from torchrl.objectives.common import LossModule
 from torchrl.objectives.sac import compute_rsample_log_prob
 from torchrl.objectives.utils import _vmap_func
 
-from pe_rlhf.objectives.contract import KeyedLoss, next_keys
+from pe_rlhf.objectives.contract import KeyedLoss, TakeoverKeys, next_keys
 from pe_rlhf.objectives.fused_critics import detached, evaluate, mlp_plan, project_state
 
 FAILURE_TARGETS = ("zero", "bootstrap", "batch_min")
@@ -125,11 +125,7 @@ class PERLHFLoss(KeyedLoss, LossModule):
     """
 
     @dataclass
-    class _AcceptedKeys:
-        action: NestedKey = "action"
-        behavior_action: NestedKey = ("next", "behavior_action")
-        intervention: NestedKey = ("next", "intervention")
-        intervention_start: NestedKey = ("next", "intervention_start")
+    class _AcceptedKeys(TakeoverKeys):
         intervention_cost: NestedKey = ("next", "intervention_cost")
         disturbance_cost: NestedKey = ("next", "disturbance_cost")
         state_action_value: NestedKey = "state_action_value"

@@ -47,7 +47,7 @@ from tensordict.utils import NestedKey
 from torchrl.objectives.common import LossModule
 from torchrl.objectives.utils import _vmap_func
 
-from pe_rlhf.objectives.contract import KeyedLoss, next_keys
+from pe_rlhf.objectives.contract import KeyedLoss, TakeoverKeys, next_keys
 
 
 class ProxyValueLoss(KeyedLoss, LossModule):
@@ -74,13 +74,9 @@ class ProxyValueLoss(KeyedLoss, LossModule):
     """
 
     @dataclass
-    class _AcceptedKeys:
+    class _AcceptedKeys(TakeoverKeys):
         """Keys the loss reads; ``set_keys(action=..., behavior_action=...)`` renames them."""
 
-        action: NestedKey = "action"
-        behavior_action: NestedKey = ("next", "behavior_action")
-        intervention: NestedKey = ("next", "intervention")
-        intervention_start: NestedKey = ("next", "intervention_start")
         mentor_selected: NestedKey = ("next", "mentor_selected")
         state_action_value: NestedKey = "state_action_value"
         terminated: NestedKey = "terminated"
