@@ -1,7 +1,10 @@
-"""The PE-RLHF (HACO, HAIM-DRL) learner: warm-up, ensemble fit, online collection with takeovers, updates.
+"""The PE-RLHF (HACO, HAIM-DRL, PVP) learner's objects and helpers: warm-up, value-source fit, online collection with
+takeovers, updates.
 
-:class:`ProxyQLearner` plugs into :class:`~pe_rlhf.runtime.run.Run`, the loop every method shares (cadence,
-checkpoints, ``--resume``, finish); its batches, and :meth:`ProxyQLearner.learn` on each, in phases:
+``recipes/pe_rlhf/train.py`` owns the loop: for each of :meth:`ProxyQLearner.batches` it calls
+:meth:`ProxyQLearner.store`, the updater's ``notify_frames`` (the updates), :meth:`ProxyQLearner.row` and
+:meth:`pe_rlhf.runtime.run.Run.after_batch` (the cadence every method shares: evaluations, checkpoints, the
+log). The batches, in phases:
 
 1. warm-up: the mentor (or, with ``collector.warmup_policy``, the trained actor of an earlier run: the
    expert-policy warm-up) drives ``collector.warmup_steps`` steps (the transform forces it); the
@@ -47,15 +50,12 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-import torch
-
-from pe_rlhf.evaluation import TorchRLPolicyAdapter, evaluate
+from pe_rlhf.evaluation import TorchRLPolicyAdapter
 from pe_rlhf.modules import EnsembleSchedule
 from pe_rlhf.objectives import fit_q_ensemble
 from pe_rlhf.runtime.checkpoint import capture_rng, restore_rng
 from pe_rlhf.runtime.collection_state import capture_collection, restore_collection
-from pe_rlhf.runtime.run import Learner, Run
-from pe_rlhf.threads import torch_threads
+from pe_rlhf.runtime.run import Learner
 from pe_rlhf.algorithms.proxy_q import builders
 from pe_rlhf.algorithms.proxy_q.config import algorithm_name, method_name
 from pe_rlhf.algorithms.proxy_q.steps import batch_metrics, ensemble_transitions, relabel_warmup
@@ -183,22 +183,6 @@ def iteration_log(counters: Counters, m: dict, losses: dict) -> dict[str, float]
     return log
 
 
-def train(cfg, out_dir: Path, logger, checkpoint_dir: Path | None = None, resume: bool = False) -> dict:
-    """Run the recipe described by ``cfg``; returns the final evaluation summary dict.
-
-    ``logger`` has ``log(step, metrics)`` (and ``truncate_after`` for resuming). With
-    ``checkpoint_dir``, checkpoints are written every ``checkpoint.every_frames``; with ``resume``,
-    the newest one there is loaded first and the run continues from its step.
-    """
-    torch.manual_seed(int(cfg.seed))
-    update_threads = torch.get_num_threads()
-    with torch_threads(1):
-        learner = ProxyQLearner(cfg, logger, checkpoint_dir, update_threads)
-        run = Run(cfg, learner, logger, checkpoint_dir, total=cfg.collector.total_frames,
-                  eval_every=cfg.eval.every_frames, checkpoint_every=cfg.checkpoint.every_frames)
-        return run.train(out_dir, resume)
-
-
 class ProxyQLearner(Learner):
     """PE-RLHF, HACO and HAIM-DRL as a :class:`~pe_rlhf.runtime.run.Learner`: its objects, and the work done
     on each batch, collected or replayed from the journal on ``--resume`` (:mod:`pe_rlhf.runtime.journal`)."""
@@ -238,7 +222,7 @@ class ProxyQLearner(Learner):
             self.env.append_transform(self.pending)  # last: it copies each step as the collector stores it
         self.updater = builders.build_updater(cfg, self.loss, self.optimizers, soft_update, self.replay,
                                               self.learner_actor, update_threads, self.device)
-        self.collector, self.losses, self.disconnects = None, {}, 0
+        self.collector, self.losses, self.disconnects, self.backlog = None, {}, 0, 0
         self.journaled: list[JournalEntry] = []  # on --resume: the killed run's batches since the checkpoint,
         self.journaled_pending: JournalEntry | None = None  # and its last batch up to the last finished episode
         self.resumed_collection: tuple[dict, dict | None] | None = None  # (collection, mentor state) to continue
@@ -343,11 +327,14 @@ class ProxyQLearner(Learner):
             yield cut_to(batch, int(self.cfg.collector.total_frames) - int(self.counters.frames)), False
             t_env = time.time()
 
-    def learn(self, item) -> dict[str, float]:
-        """One batch: journal, buffers, ensemble fit, updates; returns its row."""
+    def store(self, item) -> dict[str, float]:
+        """A batch from :meth:`batches` (``(batch, journaled)``) into the run: journaled first (on disk before
+        anything else happens to it), counted, the warm-up's relabelled (and kept to fit the value source on), the
+        replay buffer extended, the value source fitted when due. Returns the batch's counts
+        (:func:`~pe_rlhf.algorithms.proxy_q.steps.batch_metrics`)."""
         batch, journaled = item
         cfg, c = self.cfg, self.counters
-        if self.journal is not None and not journaled:  # on disk before anything else happens to it
+        if self.journal is not None and not journaled:
             self.journal.write(batch, int(c.frames), self._actor_state())
             self.journal.discard_pending(int(c.frames))  # its pending files: the whole batch is in now
         warmup = c.frames < int(cfg.collector.warmup_steps)
@@ -355,15 +342,24 @@ class ProxyQLearner(Learner):
         c.add(m, warmup)
         if warmup:
             self.warmup_buffer.extend(ensemble_transitions(batch).reshape(-1))  # (N, T) with multisync: time last
-        if warmup:
             batch = relabel_warmup(batch)
             m["intervention_cost"] = 0.0  # forced mentor driving is no takeover: nothing is charged
         with self.updater.lock:  # the learner thread samples from it
             self.replay.extend(batch.reshape(-1))
         self._fit_value_source()
-        backlog = self.updater.backlog  # updates owed by earlier batches, not run yet: 0 while the learner keeps up
-        if c.frames >= int(cfg.collector.learning_starts):
-            self.updater.notify_frames(int(m["steps"]))  # sync: the updates these frames pay for run here
+        self.backlog = self.updater.backlog  # updates owed by earlier batches, not run yet: 0 while it keeps up
+        return m
+
+    @property
+    def learning(self) -> bool:
+        """Whether updates run: ``collector.learning_starts`` frames are in."""
+        return self.counters.frames >= int(self.cfg.collector.learning_starts)
+
+    def row(self, m: dict[str, float]) -> dict[str, float]:
+        """After the batch's updates: the latest losses, the collector's policy weights synced, the batch's row of
+        metrics (``m``: :meth:`store`'s counts); a mentor's disconnect asks for a checkpoint."""
+        c = self.counters
+        if self.learning:
             self.losses = self.updater.latest_losses() or self.losses
             if self.collector is not None:
                 builders.sync_policy(self.collector)
@@ -371,7 +367,7 @@ class ProxyQLearner(Learner):
         c.update_seconds = self.update_seconds0 + self.updater.update_seconds
         metrics = iteration_log(c, m, self.losses)
         metrics["time/update_threads"] = float(self.updater.threads)
-        metrics["train/update_backlog"] = float(backlog)
+        metrics["train/update_backlog"] = float(self.backlog)
         metrics.update(pacing_log(self.pacing, int(m["steps"])))
         disconnects = int(getattr(self.mentor, "disconnects", 0) or 0)  # a person's window closed, pad unplugged
         metrics["train/mentor_disconnects"] = float(disconnects)
