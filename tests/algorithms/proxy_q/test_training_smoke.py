@@ -11,7 +11,7 @@ from _scripts import load_pe_rlhf_recipe
 
 from pe_rlhf.durable import load_tensors
 
-SMOKE_RUN = ["profile=smoke", "--compare", "idm-mobil"]
+SMOKE_RUN = ["profile=smoke", "eval.video=true", "--compare", "idm-mobil"]
 
 
 @pytest.fixture(scope="module")
