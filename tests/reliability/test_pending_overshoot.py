@@ -9,6 +9,8 @@ collector's first batch completes the pending steps to a whole batch, trained on
 
 from __future__ import annotations
 
+import shutil
+
 import pytest
 from _compare import assert_same
 from _runs import checkpoint_contents, train
@@ -35,3 +37,24 @@ def test_a_resume_from_a_pending_batch_ends_at_total_frames_with_its_rows_on_the
     assert len(replay) == total
     for key in ("observation", "action", ("next", "observation"), ("next", "done")):  # the pending steps first
         assert_same(pending.batch[key], replay[start:end][key], f"{key} of frames {start}-{end}")
+
+
+def test_a_pending_file_that_holds_a_whole_batch_is_trained_on_alone(tmp_path, monkeypatch):
+    """An episode that ended on the batch's last step, killed before the batch was journaled: the pending file is
+    the whole batch (frames 100-125 here, made from the journal file of that batch), trained on by itself and
+    followed by whole batches; before, it was joined to the collector's first batch (one 50-frame row at 150)."""
+    monkeypatch.setattr(BatchJournal, "prune", lambda self, frame: None)  # keep the batch files the checkpoints hold
+    run = tmp_path / "run"
+    train(run, "collector.total_frames=125")
+    monkeypatch.undo()
+    journal = BatchJournal(run / "checkpoints" / "journal")
+    [path] = [path for end, path in journal.files() if end == 125]
+    entry = journal.read(path)
+    path.unlink()
+    journal.write_pending(entry.batch, entry.start, entry.state)  # the killed run's state: pending, not journaled
+    shutil.rmtree(run / "checkpoints" / "ckpt_000000125")  # the run was killed before it finished: ckpt_100 is
+    (run / "checkpoints" / "latest").unlink()  # its newest
+    final = train(run, "collector.total_frames=150", resume=True)
+    assert final["training"]["frames"] == 150
+    rows = [int(float(line.split(",")[0])) for line in (run / "metrics.csv").read_text().splitlines()[1:]]
+    assert rows == [25, 50, 75, 100, 125, 150]

@@ -333,9 +333,11 @@ class ProxyQLearner(Learner):
         that rows and updates land where an uninterrupted run's do; the last one cut at ``collector.total_frames``."""
         total, frames = int(self.cfg.collector.total_frames), int(self.counters.frames)
         held = 0 if head is None else int(head.numel())
-        if frames + held >= total:
-            if head is not None:
-                yield cut_to(head, total - frames), False
+        whole = (frames + held) % int(self.cfg.collector.frames_per_batch) == 0  # an episode ended on its last step
+        if head is not None and (whole or frames + held >= total):  # nothing to complete, or the run ends in it
+            yield cut_to(head, total - frames), False
+            head, held, frames = None, 0, int(self.counters.frames)
+        if frames >= total:
             return
         if self.pending is not None:  # a kill now keeps ``head`` and the episodes that end after it
             self.pending.restart(frames, head)
