@@ -150,5 +150,45 @@ def test_sigkill_keeps_the_episodes_that_ended_in_the_batch_being_collected(tmp_
     final = train(killed, f"collector.total_frames={end + 25}", resume=True)  # collecting goes on from there
     assert final["training"]["frames"] == end + 25
     rows = [int(float(line.split(",")[0])) for line in (killed / "metrics.csv").read_text().splitlines()[1:]]
-    assert rows == [*range(25, start + 1, 25), end, end + 25]  # no gap, no repeated step
+    assert rows == sorted({*range(25, start + 26, 25), end, end + 25})  # no gap, no repeat; back on the grid
     assert not list((ckpts / "journal").iterdir())
+
+
+def test_a_collection_that_completes_a_pending_batch_journals_it_on_the_grid(tmp_path):
+    """``restart(start, steps)``: the killed run's pending steps of the batch at ``start`` come first; the collector's
+    first batch tops them up to the grid (:func:`batches_on_grid`), and an episode that ends meanwhile is written
+    with them, so a second kill keeps both."""
+    from pe_rlhf.algorithms.proxy_q.builders import batches_on_grid
+
+    torch.manual_seed(0)
+    env = TransformedEnv(GymEnv("Pendulum-v1"), StepCounter(2))
+    journal = BatchJournal(tmp_path)
+    pending = PendingEpisodesJournal(journal, 4)
+    env.append_transform(pending)
+    env.set_seed(0)
+    head = pendulum_batches(tmp_path / "killed", max_steps=2, frames_per_batch=4, batches=2)[1][1][0][:2]
+    pending.restart(4, head)  # frames 4-5 were the killed run's; collection goes on at 6
+    collector = Collector(env, RandomPolicy(env.action_spec), frames_per_batch=4, total_frames=6)
+    batches = [batch.clone() for batch in batches_on_grid(collector, 6)]
+    collector.shutdown()
+    assert [b.numel() for b in batches] == [2, 4]  # frames 6-7, then 8-11
+    assert [(start, end) for start, end, _ in journal.pending_files()] == [(4, 8), (8, 12)]  # (8, 10) replaced
+    first = journal.read(journal.pending_files()[0][2]).batch
+    assert_same(head, first[:2], "the killed run's steps")
+    assert_same(batches[0], first[2:], "the top-up's steps")
+
+
+def test_a_collection_that_starts_off_the_grid_returns_to_it(tmp_path):
+    """A resume from a checkpoint cut at ``collector.total_frames`` (frame 6 of 4-frame batches): the first batch
+    is frames 6-7, and the pending files of the next batch start at frame 8."""
+    from pe_rlhf.algorithms.proxy_q.builders import batches_on_grid
+
+    torch.manual_seed(0)
+    env = TransformedEnv(GymEnv("Pendulum-v1"), StepCounter(2))
+    journal = BatchJournal(tmp_path)
+    env.append_transform(PendingEpisodesJournal(journal, 4, start_frames=6))
+    env.set_seed(0)
+    collector = Collector(env, RandomPolicy(env.action_spec), frames_per_batch=4, total_frames=6)
+    assert [batch.numel() for batch in batches_on_grid(collector, 6)] == [2, 4]  # frames 6-7, then 8-11
+    collector.shutdown()
+    assert [(start, end) for start, end, _ in journal.pending_files()] == [(6, 8), (8, 12)]  # ends at 7, 9, 11

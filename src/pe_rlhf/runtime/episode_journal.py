@@ -6,8 +6,9 @@ ended inside the batch, a person's finished work. Appended as the training env's
 this one keeps a copy of each step of the current batch and, when a step ends an episode (``("next",
 "done")``), writes the batch's steps so far as a pending file (:meth:`BatchJournal.write_pending`:
 atomic, checksummed, with the RNG state and the ``state()`` of that moment: the
-``InterventionTransform``'s step count and the mentor's state). ``--resume`` trains on that file as a
-short batch; the trainer deletes it once the whole batch is journaled.
+``InterventionTransform``'s step count and the mentor's state). ``--resume`` completes that file's steps
+to a whole batch (:meth:`restart` takes them, so a second kill keeps them too) and trains on it; the
+trainer deletes the file once the whole batch is journaled.
 
 A step's copy holds what the collector's batch holds for it: the root entries of the step's input
 (``observation``, done flags, the policy's ``action``/``loc``/``scale``, ``("collector",
@@ -15,8 +16,9 @@ A step's copy holds what the collector's batch holds for it: the root entries of
 ``InterventionTransform`` replaces ``action`` with the executed one for the simulator only), and
 the step's output under ``"next"``, copied in :meth:`_step` after every other transform wrote to it
 (hence: last). Reads those keys, writes none, changes no spec. The frame count follows the
-collector's: the batch starting at ``start_frames`` (set by :meth:`restart` before the collector is
-built) ends ``frames_per_batch`` steps later, and so on; resets are not frames.
+collector's: batches end on the ``frames_per_batch`` grid (a collection that starts off it, at
+``start_frames`` set by :meth:`restart` before the collector is built, first tops its batch up to the
+grid); resets are not frames.
 
 Single env only (the ``single`` backend): in the multi-worker backends each worker's env would need
 its own journal and a frame count of its share; they are not covered (a kill loses the batch being
@@ -60,10 +62,11 @@ class PendingEpisodesJournal(Transform):
         self.journal, self.frames_per_batch, self.state = journal, int(frames_per_batch), state
         self.restart(start_frames)
 
-    def restart(self, start_frames: int) -> None:
-        """A collector starts at frame ``start_frames``: forget the steps kept so far."""
+    def restart(self, start_frames: int, steps: TensorDictBase | None = None) -> None:
+        """A collector starts at frame ``start_frames`` (after ``steps``: a ``(k,)`` TensorDict of the batch's
+        first steps, a killed run's pending file that this collection completes): forget the steps kept so far."""
         self.batch_start = int(start_frames)
-        self._steps: list[TensorDictBase] = []
+        self._steps: list[TensorDictBase] = list(steps.unbind(0)) if steps is not None else []
         self._root: TensorDictBase | None = None
 
     def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase:
@@ -80,8 +83,8 @@ class PendingEpisodesJournal(Transform):
         if bool(next_tensordict.get("done").any()):
             self.journal.write_pending(torch.stack(self._steps), self.batch_start,
                                        self.state() if self.state is not None else {})
-        if len(self._steps) == self.frames_per_batch:  # the collector hands this batch over now
-            self.batch_start += self.frames_per_batch
+        if (self.batch_start + len(self._steps)) % self.frames_per_batch == 0:  # the collector hands it over now
+            self.batch_start += len(self._steps)
             self._steps = []
         return next_tensordict
 

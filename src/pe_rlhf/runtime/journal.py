@@ -11,10 +11,11 @@ checkpoint are deleted after each checkpoint.
 The batch being collected is covered too, up to its last finished episode: with the ``single``
 backend, :class:`~pe_rlhf.runtime.episode_journal.PendingEpisodesJournal` writes a *pending* file
 here each time an episode ends inside it (the batch's steps so far), deleted once the whole batch is
-journaled. ``--resume`` trains on the pending file that continues the journal as a short batch
-(:meth:`BatchJournal.pending_at`). So a kill loses only the steps of the episode in progress since
-the batch began (at most ``collector.frames_per_batch``, 10 s of driving at 10 Hz with the default
-100), and that episode is cut there. Multi-worker backends write no pending files: a kill loses
+journaled. ``--resume`` completes the pending file that continues the journal
+(:meth:`BatchJournal.pending_at`) to a whole batch with a fresh episode's steps. So a kill loses
+only the steps of the episode in progress since the batch began (at most
+``collector.frames_per_batch``, 10 s of driving at 10 Hz with the default 100), and that episode is
+cut there. Multi-worker backends write no pending files: a kill loses
 the whole batch being collected.
 
 On disk (``directory/``), one file per batch, ``batch_{end:09d}-{sha256[:16]}.pt``, and pending

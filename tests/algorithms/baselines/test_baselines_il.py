@@ -2,9 +2,10 @@
 
 A 200-step professional demonstration set is recorded once (smoke world: horizon 50, one block); each
 recipe trains its smoke profile on it and must write every output with finite numbers; a recipe without
-``data.path`` records its own; HG-DAgger's gate keeps exactly the takeover steps with the mentor's action;
-IWR's weights balance takeover and other samples; BC moves the actor toward its labels (and honours
-weights); GAIL's discriminator separates the mentor's steps; bad config values fail naming the field.
+``data.path`` records its own; every smoke run moves every actor parameter and a parameter of every optimiser;
+HG-DAgger's gate keeps exactly the takeover steps with the mentor's action; IWR's weights balance takeover and
+other samples; BC moves the actor toward its labels (and honours weights); GAIL's discriminator separates the
+mentor's steps; bad config values fail naming the field.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ import torch
 from omegaconf import OmegaConf
 from tensordict import TensorDict
 from torchrl.envs.utils import ExplorationType, set_exploration_type
+from _learning import assert_trained, watched_main
 
 from pe_rlhf.algorithms.baselines import METHODS, load_baseline_actor, load_baseline_config, main
 from pe_rlhf.algorithms.baselines.demos import ensure_demonstrations, load_transitions
@@ -60,18 +62,24 @@ def demos_dir(tmp_path_factory) -> Path:
 
 
 @pytest.fixture(scope="module")
-def smoke_run(tmp_path_factory, demos_dir):
-    """``smoke_run(method)``: the run folder of ``train.py profile=smoke data.path=<demos>`` (once per module)."""
-    done: dict[str, Path] = {}
+def smoke_runs(tmp_path_factory, demos_dir):
+    """``smoke_runs(method)``: the run folder of ``train.py profile=smoke data.path=<demos>`` and its parameters
+    before and after training (``watched_main``), once per module."""
+    done: dict[str, tuple[Path, dict]] = {}
 
-    def run(method: str) -> Path:
+    def run(method: str) -> tuple[Path, dict]:
         if method not in done:
             out = tmp_path_factory.mktemp(method)
-            main(method, ["profile=smoke", f"data.path={demos_dir}", "--out", str(out)])
-            done[method] = out
+            done[method] = out, watched_main(method, ["profile=smoke", f"data.path={demos_dir}", "--out", str(out)])
         return done[method]
 
     return run
+
+
+@pytest.fixture(scope="module")
+def smoke_run(smoke_runs):
+    """``smoke_run(method)``: the run folder of ``smoke_runs(method)``."""
+    return lambda method: smoke_runs(method)[0]
 
 
 def check_outputs(out: Path, method: str) -> tuple[list[dict[str, float]], dict]:
@@ -128,6 +136,12 @@ def test_smoke_run_writes_every_output(smoke_run, method):
         expected = DEMO_STEPS + (t["takeover_steps_total"] if method == "hg_dagger" else 300)
         assert t["dataset_size"] == expected  # HG-DAgger keeps the takeovers, IWR every step
         assert t["mentor_data_share"] == pytest.approx(t["mentor_data_total"] / expected)
+
+
+@pytest.mark.parametrize("method", IL_METHODS)
+def test_every_il_baseline_trains_its_actor_and_every_optimiser(smoke_runs, method):
+    """Issue 45, case 10: in the smoke run every actor parameter moved, and a parameter of every optimiser."""
+    assert_trained(method, smoke_runs(method)[1])
 
 
 def test_cql_trains_the_actor_on_its_bc_term_first(smoke_run):

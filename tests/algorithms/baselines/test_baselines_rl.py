@@ -3,7 +3,8 @@
 Each recipe trains its smoke profile (300 env steps, 32x32 networks, horizon 50, one test episode) and
 must write every output with finite numbers; SAC-Lag's multiplier is checked step by step against the
 projected dual ascent on the logged episode-cost window (cost limit 0, so every cost raises it); bad
-config values fail naming the field; the command line applies overrides; ``--resume`` continues a run.
+config values fail naming the field; every smoke run moves every actor parameter and a parameter of every
+optimiser; the command line applies overrides; ``--resume`` continues a run.
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ from pe_rlhf.runtime.checkpoint import load_checkpoint
 from pe_rlhf.runtime.config_rules import ConfigError
 from pe_rlhf.runtime.metrics_logger import read_metrics_csv
 from pe_rlhf.runtime.world import obs_dim
+from _learning import assert_trained, watched_main
 from _scripts import SCRIPT_ENV
 
 pytestmark = [pytest.mark.usefixtures("one_thread_module"),
@@ -47,18 +49,24 @@ EXTRA = {"sac_lag": ["constraint.cost_limit=0", f"constraint.lambda_lr={LAMBDA_L
 
 
 @pytest.fixture(scope="module")
-def smoke_run(tmp_path_factory):
-    """``smoke_run(method)``: the run folder of ``train.py profile=smoke`` (run once per module)."""
-    done: dict[str, Path] = {}
+def smoke_runs(tmp_path_factory):
+    """``smoke_runs(method)``: the run folder of ``train.py profile=smoke`` and its parameters before and after
+    training (``watched_main``), once per module."""
+    done: dict[str, tuple[Path, dict]] = {}
 
-    def run(method: str) -> Path:
+    def run(method: str) -> tuple[Path, dict]:
         if method not in done:
             out = tmp_path_factory.mktemp(method)
-            main(method, ["profile=smoke", *EXTRA.get(method, []), "--out", str(out)])
-            done[method] = out
+            done[method] = out, watched_main(method, ["profile=smoke", *EXTRA.get(method, []), "--out", str(out)])
         return done[method]
 
     return run
+
+
+@pytest.fixture(scope="module")
+def smoke_run(smoke_runs):
+    """``smoke_run(method)``: the run folder of ``smoke_runs(method)``."""
+    return lambda method: smoke_runs(method)[0]
 
 
 def check_outputs(out: Path, method: str) -> list[dict[str, float]]:
@@ -163,6 +171,12 @@ def test_checkpoint_copy_of_a_replay_buffer_holds_its_items_oldest_first():
 @pytest.mark.parametrize("method", ["sac_rs", "sac_lag", "ppo_lag", "cpo"])
 def test_smoke_run_writes_every_output(smoke_run, method):
     check_outputs(smoke_run(method), method)
+
+
+@pytest.mark.parametrize("method", ["sac_rs", "sac_lag", "ppo_rs", "ppo_lag", "cpo"])
+def test_every_rl_baseline_trains_its_actor_and_every_optimiser(smoke_runs, method):
+    """Issue 45, case 10: in the smoke run every actor parameter moved, and a parameter of every optimiser."""
+    assert_trained(method, smoke_runs(method)[1])
 
 
 def assert_dual_ascent(out: Path) -> list[dict[str, float]]:

@@ -134,7 +134,8 @@ def test_ray_kwargs_and_ensemble_push_without_ray(monkeypatch):
 
 
 def test_smoke_training_with_multisync_writes_finite_metrics(tmp_path):
-    final = load_pe_rlhf_recipe().main(MULTISYNC + ["--out", str(tmp_path)])
+    # no GIF (a third of a smoke run's CPU): test_training_smoke checks the video
+    final = load_pe_rlhf_recipe().main(MULTISYNC + ["eval.video=false", "--out", str(tmp_path)])
     with open(tmp_path / "metrics.csv") as f:
         rows = list(csv.DictReader(f))
     assert [int(float(r["step"])) for r in rows] == [50, 100, 150, 200, 250, 300]

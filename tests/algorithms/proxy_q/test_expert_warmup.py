@@ -63,7 +63,9 @@ def test_a_baseline_run_folder_without_the_method_record_still_loads(sac_run, tm
 
 def test_the_expert_drives_the_warmup_of_a_recipe_run(sac_run, tmp_path):
     recipe = load_pe_rlhf_recipe()
-    final = recipe.main(["profile=smoke", f"collector.warmup_policy={sac_run}", "--out", str(tmp_path)])
+    # no GIF (a third of a smoke run's CPU): test_training_smoke checks the video
+    final = recipe.main(["profile=smoke", "eval.video=false", f"collector.warmup_policy={sac_run}",
+                         "--out", str(tmp_path)])
     assert final["training"]["frames"] == 300
     cfg = load_config(tmp_path / "config.yaml", apply_profile=False)
     assert cfg.collector.warmup_policy == str(sac_run)  # recorded with the run

@@ -31,7 +31,9 @@ def test_the_recipe_is_the_sweeps_haco_and_builds_no_selector():
 
 
 def test_smoke_run_executes_only_the_mentor_in_takeovers(tmp_path):
-    final = load_script("recipes/haco/train.py", "haco_recipe").main(["profile=smoke", "--out", str(tmp_path)])
+    # no GIF (a third of a smoke run's CPU): test_training_smoke and the HAIM-DRL smoke run check the video
+    final = load_script("recipes/haco/train.py", "haco_recipe").main(["profile=smoke", "eval.video=false",
+                                                                      "--out", str(tmp_path)])
     saved = load_config(tmp_path / "config.yaml", apply_profile=False)
     assert not saved.physics.enabled and not saved.selector.enabled
     written = json.loads((tmp_path / "final_eval.json").read_text())

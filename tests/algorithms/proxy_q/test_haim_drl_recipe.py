@@ -46,7 +46,7 @@ def test_builders_add_the_transform_after_the_takeover_and_a_disturbance_critic(
 
 
 def test_smoke_run_writes_every_output(tmp_path):
-    final = _load_recipe().main(["profile=smoke", "--out", str(tmp_path)])
+    final = _load_recipe().main(["profile=smoke", "eval.video=true", "--out", str(tmp_path)])
     for name in ("config.yaml", "metrics.csv", "final_eval.json", "training_curves.png", "actor.safetensors",
                  "test_episode.gif"):
         assert (tmp_path / name).exists(), name

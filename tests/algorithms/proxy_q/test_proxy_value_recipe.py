@@ -73,7 +73,9 @@ def test_pvp_recipe_is_the_registry_method_and_refuses_a_disturbance_critic():
 
 
 def test_pvp_smoke_run_learns_from_proxy_values_and_its_actor_loads_back(tmp_path):
-    final = load_script("recipes/pvp/train.py", "pvp_recipe").main(["profile=smoke", "--out", str(tmp_path)])
+    # no GIF (a third of a smoke run's CPU): test_training_smoke and the HAIM-DRL smoke run check the video
+    final = load_script("recipes/pvp/train.py", "pvp_recipe").main(["profile=smoke", "eval.video=false",
+                                                                    "--out", str(tmp_path)])
     assert json.loads((tmp_path / "final_eval.json").read_text())["algorithm"] == "pvp"
     with open(tmp_path / "metrics.csv") as f:
         rows = list(csv.DictReader(f))

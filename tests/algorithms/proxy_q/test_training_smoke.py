@@ -11,7 +11,7 @@ from _scripts import load_pe_rlhf_recipe
 
 from pe_rlhf.durable import load_tensors
 
-SMOKE_RUN = ["profile=smoke", "--compare", "idm-mobil"]
+SMOKE_RUN = ["profile=smoke", "eval.video=true", "--compare", "idm-mobil"]
 
 
 @pytest.fixture(scope="module")
@@ -70,7 +70,7 @@ def test_unknown_compare_policy_fails_before_training(tmp_path, capsys):
 def test_resume_continues_without_gap_or_repeat(tmp_path, capsys):
     recipe = load_pe_rlhf_recipe()
     recipe.main(["profile=smoke", "collector.total_frames=200", "checkpoint.every_frames=100", "checkpoint.keep=2",
-                 "--out", str(tmp_path)])
+                 "eval.video=false", "--out", str(tmp_path)])  # no GIF: test_smoke_run_writes_every_output's
     assert (tmp_path / "checkpoints" / "ckpt_000000200").exists()
     final = recipe.main(["--resume", str(tmp_path), "collector.total_frames=300"])
     rows = list(csv.DictReader(open(tmp_path / "metrics.csv")))
@@ -98,8 +98,9 @@ def test_amateur_fatigue_is_logged_and_grows_with_the_steps_it_controls(tmp_path
 
 
 def test_the_same_seed_gives_the_same_metrics(smoke_run, tmp_path):
-    """Two runs of one seed on one machine: every logged number and the final evaluation agree (timings aside)."""
-    again = load_pe_rlhf_recipe().main([*SMOKE_RUN, "--out", str(tmp_path)])
+    """Two runs of one seed on one machine: every logged number and the final evaluation agree (timings aside).
+    The second records no GIF (a third of its CPU): the video is filmed after the final evaluation."""
+    again = load_pe_rlhf_recipe().main([*SMOKE_RUN, "eval.video=false", "--out", str(tmp_path)])
     assert _logged(tmp_path, again) == _logged(*smoke_run)
 
 

@@ -241,6 +241,30 @@ def build_collector(cfg, env, actor, total_frames: int | None = None, *, value_s
                            **explore, **extra)
 
 
+def batches_on_grid(collector: BaseCollector, frames: int):
+    """``collector``'s batches, the first one sized to end on the ``frames_per_batch`` grid when the run's frame
+    count ``frames`` is off it (a resume after a pending batch or from a checkpoint cut at ``total_frames``), so
+    that the run's rows and updates land on the frames an uninterrupted run's do. Only the ``single`` backend's
+    collector can size a batch; the multi-worker ones yield theirs as they come."""
+    full = int(collector.frames_per_batch) if isinstance(collector, Collector) else 0
+    first = full - frames % full if full else 0
+    if not first or first == full:
+        yield from collector
+        return
+    # TorchRL's Collector steps ``frames_per_batch`` times into its preallocated ``_final_rollout``: a view of its
+    # first ``first`` steps makes one short batch; both are put back before the next batch is collected.
+    buffer = getattr(collector, "_final_rollout", None)
+    collector.frames_per_batch = first
+    if buffer is not None:
+        collector._final_rollout = buffer[..., :first]
+    for i, batch in enumerate(collector):
+        yield batch
+        if i == 0:
+            collector.frames_per_batch = full
+            if buffer is not None:
+                collector._final_rollout = buffer
+
+
 def ray_collector_kwargs(cfg, factories: list, actor, total_frames: int, value_source: ValueSource | None) -> dict:
     """``RayCollector`` arguments: one ``Collector`` per worker, sync (batches ``(N, T / N)``). The
     ensemble travels by value in each factory (no shared memory): :func:`push_value_source_weights`."""

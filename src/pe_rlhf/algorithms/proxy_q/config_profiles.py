@@ -37,7 +37,8 @@ PROFILES: dict[str, dict[str, Any]] = {
         "eval": {"every_frames": 0, "episodes": 10, "video": True},
         "checkpoint": {"every_frames": 3000},
     },
-    # CI: the whole loop (warm-up, ensemble fit, updates, eval, checkpoint) in about a minute.
+    # CI: the whole loop (warm-up, ensemble fit, updates, eval, checkpoint) in about a minute. No test-episode GIF:
+    # filming it was ~45% of a smoke run's CPU time (cProfile, 2026-12-06); eval.video=true films it.
     "smoke": {
         "env": {"horizon": 100, "min_blocks": 2, "max_blocks": 2},
         "selector": {"num_members": 2, "hidden": [32, 32], "warmup_fit_steps": 20,
@@ -46,7 +47,7 @@ PROFILES: dict[str, dict[str, Any]] = {
         "replay_buffer": {"size": 1000, "batch_size": 32},
         "optim": {"updates_per_batch": 5},
         "loss": {"hidden": [32, 32]},
-        "eval": {"every_frames": 300, "episodes": 1, "video": True},
+        "eval": {"every_frames": 300, "episodes": 1, "video": False},
         "checkpoint": {"every_frames": 300, "keep": 1},
     },
 }

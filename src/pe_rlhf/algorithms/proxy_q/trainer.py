@@ -22,9 +22,10 @@ log). The batches, in phases:
 What a run survives: each collected batch is journaled (:mod:`pe_rlhf.runtime.journal`) before
 it is used, and with the ``single`` backend each episode that ends inside the batch being collected
 is written at once (:mod:`pe_rlhf.runtime.episode_journal`), so ``--resume`` after a kill replays
-the batches since the checkpoint with the RNG states they arrived with, then trains on the
-collected batch's steps up to its last finished episode as a short batch, and loses only the steps
-of the episode in progress since the batch began (multi-worker backends: the batch being collected);
+the batches since the checkpoint with the RNG states they arrived with, then completes the
+collected batch's steps up to its last finished episode with steps from a fresh episode (its rows and
+updates land on the frames an uninterrupted run's do), and loses only the steps of the episode in
+progress since the batch began (multi-worker backends: the batch being collected);
 a non-finite loss, gradient or parameter stops updates with a ``FloatingPointError`` naming it,
 after a checkpoint of everything collected; a mentor's disconnect (a person's window closed,
 gamepad unplugged: ``disconnects``) triggers a checkpoint at the end of that batch; the run ends
@@ -285,8 +286,9 @@ class ProxyQLearner(Learner):
         self.updater.start()  # optim.async_updates: the learner thread (pe_rlhf.algorithms.proxy_q.background_updates)
 
     def batches(self):
-        """The killed run's journaled batches since the checkpoint (as it processed them), its last batch up to
-        the last finished episode (a short batch), then collection; ``(batch, journaled)`` pairs."""
+        """The killed run's journaled batches since the checkpoint (as it processed them), then collection, whose
+        first batch completes the killed run's last one up to its last finished episode; ``(batch, journaled)``
+        pairs."""
         try:
             for entry in self.journaled:
                 if self.done:
@@ -294,36 +296,45 @@ class ProxyQLearner(Learner):
                 restore_rng(entry.rng)
                 yield entry.batch, True
                 self.restore_actors(entry.state)
-            pending = self.journaled_pending
-            if pending is not None and not self.done:
+            pending = self.journaled_pending if not self.done else None
+            if pending is not None:
                 restore_rng(pending.rng)
                 self.restore_actors(pending.state)  # first: journaled with it, and a checkpoint after it saves it
-                yield pending.batch, False
-            yield from self.collect()
+            yield from self.collect(pending.batch if pending is not None else None)
         finally:
             if self.collector is not None:
                 builders.shutdown_collector(self.collector)
                 self.collector = None
 
-    def collect(self):
-        remaining = int(self.cfg.collector.total_frames) - int(self.counters.frames)
-        if remaining <= 0:
+    def collect(self, head=None):
+        """Collected batches from the run's frame count on, the first one completing ``head`` (the killed run's
+        pending steps of the batch it was collecting) and ending on the ``collector.frames_per_batch`` grid, so
+        that rows and updates land where an uninterrupted run's do; the last one cut at ``collector.total_frames``."""
+        total, frames = int(self.cfg.collector.total_frames), int(self.counters.frames)
+        held = 0 if head is None else int(head.numel())
+        whole = (frames + held) % int(self.cfg.collector.frames_per_batch) == 0  # an episode ended on its last step
+        if head is not None and (whole or frames + held >= total):  # nothing to complete, or the run ends in it
+            yield cut_to(head, total - frames), False
+            head, held, frames = None, 0, int(self.counters.frames)
+        if frames >= total:
             return
-        if self.pending is not None:
-            self.pending.restart(int(self.counters.frames))
+        if self.pending is not None:  # a kill now keeps ``head`` and the episodes that end after it
+            self.pending.restart(frames, head)
         rng = capture_rng() if self.resumed_collection is not None else None
         policy = builders.build_collection_policy(self.cfg, self.updater.policy)
-        self.collector = builders.build_collector(self.cfg, self.env, policy, remaining,
-                                                  value_source=self.value_source, start_frames=int(self.counters.frames))
+        self.collector = builders.build_collector(self.cfg, self.env, policy, total - frames - held,
+                                                  value_source=self.value_source, start_frames=frames + held)
         if self.resumed_collection is not None:  # continue the checkpoint's episode, not the collector's reset
             restore_collection(self.collector, self.transform, *self.resumed_collection)
             restore_rng(rng)  # as if no collector had been built here (the original's went on stepping)
             self.resumed_collection = None
         t_env = time.time()
-        for batch in self.collector:
+        for batch in builders.batches_on_grid(self.collector, frames + held):
             self.counters.env_seconds += time.time() - t_env
             if self.done:
                 break
+            if head is not None:
+                batch, head = torch.cat([head, batch.rename(None)]), None
             yield cut_to(batch, int(self.cfg.collector.total_frames) - int(self.counters.frames)), False
             t_env = time.time()
 
