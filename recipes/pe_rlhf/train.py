@@ -56,16 +56,22 @@ def train(cfg: DictConfig, out: Path, logger, resume: bool = False) -> dict:
         return run.finish(out)
 
 
-@hydra.main(config_path=".", config_name="config", version_base=None)
-def hydra_main(cfg: DictConfig) -> dict:
-    return recipe.hydra_task(cfg, train)
-
-
 def main(argv: list[str] | None = None, config: Path = CONFIG) -> dict:
     """The command line as a function (tests, ``pe-rlhf sweep``): ``main(["profile=smoke", "--out", "runs/x"])``;
     ``config``: the recipe's ``config.yaml`` (HACO's, HAIM-DRL's and PVP's scripts pass theirs)."""
     return recipe.main(argv, loop=train, config_path=config, description=__doc__.splitlines()[0])
 
 
+def run_as_script(config: Path = CONFIG) -> None:
+    """The script's ``__main__`` over ``config``: Hydra's command line (``key=value``, ``--cfg job``, ``--help``) and
+    the recipe's flags (``--out``, ``--resume``, ``--compare``, ``--debug``)."""
+
+    @hydra.main(config_path=str(config.parent), config_name=config.stem, version_base=None)
+    def hydra_main(cfg: DictConfig) -> dict:
+        return recipe.hydra_task(cfg, train)
+
+    recipe.run_script(hydra_main, config, train)
+
+
 if __name__ == "__main__":
-    recipe.run_script(hydra_main, CONFIG, train)
+    run_as_script()

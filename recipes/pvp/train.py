@@ -16,18 +16,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import hydra
-from omegaconf import DictConfig
-
 from pe_rlhf.algorithms.proxy_q import recipe
 
 CONFIG = Path(__file__).with_name("config.yaml")
 PE_RLHF = recipe.load_recipe_script("pe_rlhf", Path(__file__).parents[1])  # the loop: recipes/pe_rlhf/train.py
-
-
-@hydra.main(config_path=".", config_name="config", version_base=None)
-def hydra_main(cfg: DictConfig) -> dict:
-    return recipe.hydra_task(cfg, PE_RLHF.train)
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -36,4 +28,4 @@ def main(argv: list[str] | None = None) -> dict:
 
 
 if __name__ == "__main__":
-    recipe.run_script(hydra_main, CONFIG, PE_RLHF.train)
+    PE_RLHF.run_as_script(CONFIG)
