@@ -1,6 +1,6 @@
 """Frame-time jitter of human-paced training: updates in a learner thread vs inline, same run.
 
-Runs the recipe's training loop (:func:`pe_rlhf.algorithms.proxy_q.trainer.train`: collector, replay buffer,
+Runs the recipe's training loop (``recipes/pe_rlhf/train.py``'s ``train``: collector, replay buffer,
 PERLHFLoss updates, logging) as a person would drive it, ``collector.realtime_hz`` = 10 with
 :class:`~pe_rlhf.transforms.RealtimePacing`, but with the simulated ``professional`` mentor in
 the person's place (no window is drawn). Each mode collects a short warm-up (``--warmup`` frames;
@@ -37,10 +37,11 @@ from pe_rlhf.runtime.config import to_container
 from pe_rlhf.runtime.metrics_logger import MetricsLogger
 from pe_rlhf.algorithms.proxy_q import builders
 from pe_rlhf.algorithms.proxy_q.config import load_config
-from pe_rlhf.algorithms.proxy_q.trainer import train
+from pe_rlhf.algorithms.proxy_q.recipe import load_recipe_script
 from pe_rlhf.transforms import RealtimePacing
 
 MODES = {"async": "true", "sync": "false"}
+train = load_recipe_script("pe_rlhf", Path(__file__).resolve().parents[1] / "recipes").train  # the recipe's loop
 
 
 def run_mode(mode: str, args) -> dict:

@@ -139,14 +139,14 @@ def run_ours(cfg, seed: int, sim: SimTimer) -> dict:
     with tempfile.TemporaryDirectory() as tmp, MetricsLogger(tmp, csv=True) as logger:
         torch.manual_seed(seed)  # as train_baseline does
         run = Run(cfg, BaselineLearner(cfg, Path(tmp)), logger, None, total=end, eval_every=0, checkpoint_every=0)
-        step = run.step
+        after_batch = run.after_batch
 
-        def timed_step(batch):
-            step(batch)
+        def timed_after_batch(row, before):
+            after_batch(row, before)
             if run.progress in (L, end):
                 marks[run.progress] = (time.perf_counter(), dict(run.seconds), sim.snapshot())
 
-        run.step = timed_step
+        run.after_batch = timed_after_batch
         run.finish = lambda out_dir: {}  # no final evaluation: only the window counts
         with torch_threads(1):
             run.train(Path(tmp))

@@ -9,30 +9,24 @@ disturbance.enabled=true`` (``config.yaml`` beside this script, a Hydra config o
 structured config): the takeover transform without physics or selector,
 :class:`~pe_rlhf.transforms.TrafficDisturbanceCost` after it, and
 ``PERLHFLoss`` with a disturbance critic (``loss.disturbance_weight``, ``loss.num_disturbance_qvalue_nets``).
-A bad value prints one line ``error: ...`` and exits 2; ``PE_RLHF_DEBUG=1`` shows the traceback.
+A bad value prints one line ``error: ...`` and exits 2; ``PE_RLHF_DEBUG=1`` shows the traceback. The training loop is
+``recipes/pe_rlhf/train.py``'s ``train``, run over this folder's config.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
 
-import hydra
-from omegaconf import DictConfig
-
 from pe_rlhf.algorithms.proxy_q import recipe
 
 CONFIG = Path(__file__).with_name("config.yaml")
-
-
-@hydra.main(config_path=".", config_name="config", version_base=None)
-def train(cfg: DictConfig) -> dict:
-    return recipe.hydra_task(cfg)
+PE_RLHF = recipe.load_recipe_script("pe_rlhf", Path(__file__).parents[1])  # the loop: recipes/pe_rlhf/train.py
 
 
 def main(argv: list[str] | None = None) -> dict:
     """The command line as a function (tests, ``pe-rlhf sweep``): ``main(["profile=smoke", "--out", "runs/x"])``."""
-    return recipe.main(argv, config_path=CONFIG, description=__doc__.splitlines()[0])
+    return PE_RLHF.main(argv, config=CONFIG)
 
 
 if __name__ == "__main__":
-    recipe.run_script(train, CONFIG)
+    PE_RLHF.run_as_script(CONFIG)

@@ -59,23 +59,23 @@ def test_a_given_scene_that_starts_non_finite_is_a_clear_error(monkeypatch):
 
 
 def test_a_poisoned_row_is_dropped_on_resume_and_the_stop_message_says_so(tmp_path, monkeypatch, capsys):
-    real = ProxyQLearner.learn
+    real = ProxyQLearner.store
 
-    def learn(self, item):  # a NaN observation reaches the buffer after warm-up (row 80)
+    def store(self, item):  # a NaN observation reaches the buffer after warm-up (row 80)
         batch, journaled = item
         if int(self.counters.frames) == 75:
             batch = batch.clone()
             batch["observation"][5] = float("nan")
         return real(self, (batch, journaled))
 
-    monkeypatch.setattr(ProxyQLearner, "learn", learn)
+    monkeypatch.setattr(ProxyQLearner, "store", store)
     out = tmp_path / "run"
     with pytest.raises(FloatingPointError) as stopped:
         train(out, "collector.total_frames=200")
     message = str(stopped.value)
     assert "not finite" in message and f"--resume {out}` drops the replay rows holding NaN" in message
     assert "optim.lr=<lower>" in message
-    monkeypatch.setattr(ProxyQLearner, "learn", real)
+    monkeypatch.setattr(ProxyQLearner, "store", real)
     capsys.readouterr()
     final = train(out, resume=True)
     assert "dropped 1 row(s) holding NaN or inf from replay buffer 'replay'" in capsys.readouterr().out

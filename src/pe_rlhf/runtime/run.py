@@ -132,7 +132,25 @@ class Run:
         return {"pe_rlhf_version": __version__, "env_config": self.learner.env_config.to_dict()}
 
     def train(self, out_dir: Path, resume: bool = False) -> dict:
-        """The whole run (module docstring); returns the final evaluation summary dict."""
+        """The whole run (module docstring): :meth:`begin`, the learner's ``learn`` on each of its batches followed by
+        :meth:`after_batch`, :meth:`finish`; returns the final evaluation summary dict. (A recipe that owns its loop,
+        as ``recipes/pe_rlhf/train.py``, calls the same pieces.)"""
+        self.begin(out_dir, resume)
+        batches = self.learner.batches()
+        with self.batches_closed(batches):
+            t = time.time()
+            for batch in batches:
+                self.timed(0, t)
+                before, t = self.progress, time.time()
+                row = self.learner.learn(batch)
+                self.timed(1, t)
+                self.after_batch(row, before)
+                t = time.time()
+        return self.finish(Path(out_dir))
+
+    def begin(self, out_dir: Path, resume: bool = False) -> None:
+        """Before the first batch: with ``resume`` the newest intact checkpoint (or the journal) loaded, a fresh
+        run's ``pretrain`` row, the cadence from the current progress, the progress bar, the learner started."""
         if resume:
             self.resume(out_dir)
         if self.progress == 0:
@@ -146,25 +164,23 @@ class Run:
         self.next_ckpt = next_multiple(self.progress, self.checkpoint_every)
         self.bar = tqdm(total=self.total, initial=self.progress, desc=self.learner.name, unit=self.learner.unit)
         self.learner.start()
-        batches = self.learner.batches()
+
+    @contextlib.contextmanager
+    def batches_closed(self, batches):
+        """Around the loop over ``batches``: a non-finite loss, gradient or parameter (``FloatingPointError``)
+        checkpoints what there is and stops with a message saying where it is; the batches (a collector inside)
+        and the progress bar are closed whatever happens."""
         try:
-            t = time.time()
-            for batch in batches:
-                self.timed(0, t)
-                self.step(batch)
-                t = time.time()
-        except FloatingPointError as e:  # a non-finite loss, gradient or parameter: keep what there is, then stop
+            yield
+        except FloatingPointError as e:
             raise self.stop_on_error(e) from e
         finally:
-            batches.close()  # a collector inside shuts down
+            batches.close()
             self.bar.close()
-        return self.finish(Path(out_dir))
 
-    def step(self, batch) -> None:
-        """One batch: learn, evaluate and checkpoint when due, log."""
-        before, t = self.progress, time.time()
-        row = self.learner.learn(batch)
-        self.timed(1, t)
+    def after_batch(self, row: dict[str, float], before: int) -> None:
+        """After a batch's learning (its ``row``; ``before``: the progress before it): evaluate, pick and
+        checkpoint when due, log."""
         self.iterations += 1
         evaluated = self.progress >= self.next_eval
         if evaluated:

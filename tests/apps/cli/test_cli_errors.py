@@ -93,8 +93,9 @@ def test_recipe_main_called_as_a_function_still_raises():
     """Tests, sweeps and notebooks call ``main(argv)``: they get the ConfigError, not an exit."""
     from pe_rlhf.algorithms.baselines import main as baseline_main
     from pe_rlhf.runtime.config_rules import ConfigError
-    from pe_rlhf.algorithms.proxy_q import recipe
+    from _scripts import load_pe_rlhf_recipe
 
+    recipe = load_pe_rlhf_recipe()
     with pytest.raises(ConfigError, match="optim.lr='abc'"):
         recipe.main(["optim.lr=abc"])
     with pytest.raises(ConfigError, match="foo.bar"):

@@ -365,8 +365,9 @@ def smoke_runs(tmp_path_factory) -> Path:
     """``runs/pe/seed_{0,1}`` (PE-RLHF), ``runs/haco/seed_0`` and ``runs/bc`` from the real recipes' smoke
     profiles with tiny budgets (once per module)."""
     from pe_rlhf.algorithms.baselines import main as baseline_main
-    from pe_rlhf.algorithms.proxy_q import recipe
+    from _scripts import load_pe_rlhf_recipe
 
+    recipe = load_pe_rlhf_recipe()
     root = tmp_path_factory.mktemp("runs")
     tiny = ["profile=smoke", "eval.video=false", "collector.total_frames=200"]
     for seed in (0, 1):

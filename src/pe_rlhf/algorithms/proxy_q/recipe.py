@@ -1,13 +1,16 @@
-"""The proxy-Q recipes' entry point (``recipes/pe_rlhf``, ``recipes/haco``, ``recipes/haim_drl``): their config
-composed and checked, the proxy-Q learner trained, the outputs written, the summary printed.
+"""What the proxy-Q recipes' scripts (``recipes/pe_rlhf``, ``recipes/haco``, ``recipes/haim_drl``, ``recipes/pvp``)
+call around their training loop: the config composed and checked, the run folder held, the outputs written, the
+summary printed.
 
-A recipe's ``train.py`` calls :func:`hydra_task` from its ``@hydra.main`` function, :func:`run_script` as its
-``__main__`` and :func:`main` as the command line as a function (tests, ``pe-rlhf sweep``): every recipe's command
+The loop itself is the script's (``recipes/pe_rlhf/train.py``'s ``train(cfg, out, logger, resume)``; HACO's,
+HAIM-DRL's and PVP's scripts run the same one over their own ``config.yaml``), handed here as ``loop``. A script
+calls :func:`hydra_task` from its ``@hydra.main`` function, :func:`run_script` as its ``__main__`` and :func:`main`
+as the command line as a function (tests, ``pe-rlhf sweep``: :func:`load_recipe_script`): every recipe's command
 line (:mod:`pe_rlhf.runtime.recipe`: the flags ``--out``, ``--compare``, ``--resume``, Hydra's overrides, the
 one-line errors), with this family's schema (:data:`~pe_rlhf.algorithms.proxy_q.config_schema.PROXY_Q`), loader
-(:func:`load_run_config`: :func:`~pe_rlhf.algorithms.proxy_q.config.load_config`), finish
-(:func:`~pe_rlhf.algorithms.proxy_q.config.finish_config`) and training (:func:`run`). The baseline recipes plug theirs
-into the same command line (:mod:`pe_rlhf.algorithms.baselines.cli`).
+(:func:`load_run_config`: :func:`~pe_rlhf.algorithms.proxy_q.config.load_config`) and finish
+(:func:`~pe_rlhf.algorithms.proxy_q.config.finish_config`). The baseline recipes plug theirs into the same command
+line (:mod:`pe_rlhf.algorithms.baselines.cli`).
 
 Outputs in the run folder: ``config.yaml`` (resolved, with the method's registry name as ``algorithm:``),
 ``metrics.csv``, ``checkpoints/``, ``final_eval.json`` (with ``"algorithm"``), ``training_curves.png``,
@@ -17,6 +20,7 @@ Outputs in the run folder: ``config.yaml`` (resolved, with the method's registry
 from __future__ import annotations
 
 import functools
+import importlib.util
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -35,28 +39,49 @@ from pe_rlhf.runtime.run_folder import hold_run_folder
 from pe_rlhf.runtime.world import obs_dim
 from pe_rlhf.algorithms.proxy_q.config import algorithm_name, finish_config, load_config, method_name
 from pe_rlhf.algorithms.proxy_q.config_schema import PROXY_Q
-from pe_rlhf.algorithms.proxy_q.trainer import RESUME_REFUSED, train
+from pe_rlhf.algorithms.proxy_q.trainer import RESUME_REFUSED
+
+# A recipe script's training loop: loop(cfg, out, logger, resume) -> the final evaluation (final_eval.json's dict).
+Loop = Callable[[DictConfig, Path, MetricsLogger, bool], dict]
 
 
-def main(argv: list[str] | None = None, *, config_path: str | Path | None = None,
+def main(argv: list[str] | None = None, *, loop: Loop, config_path: str | Path | None = None,
          description: str | None = None) -> dict:
-    """Run a recipe: ``config_path`` is its ``config.yaml`` (None: ``recipes/pe_rlhf/config.yaml``,
+    """Run a recipe's ``loop``: ``config_path`` is its ``config.yaml`` (None: ``recipes/pe_rlhf/config.yaml``,
     see :func:`~pe_rlhf.algorithms.proxy_q.config.load_config`); ``argv`` as on the command line (Hydra's flags
     aside)."""
     return recipe.main(argv, description=description, load=functools.partial(load_run_config, config_path=config_path),
-                       train=run)
+                       train=functools.partial(run, loop=loop))
 
 
-def run_script(task: Callable[[], object], config_path: str | Path) -> None:
+def run_script(task: Callable[[], object], config_path: str | Path, loop: Loop) -> None:
     """A recipe script's ``__main__`` (:func:`pe_rlhf.runtime.recipe.run_script` with the proxy-Q schema)."""
     recipe.run_script(task, schema=PROXY_Q, load=functools.partial(load_run_config, config_path=config_path),
-                      train=run)
+                      train=functools.partial(run, loop=loop))
 
 
-def hydra_task(cfg: DictConfig) -> dict:
+def hydra_task(cfg: DictConfig, loop: Loop) -> dict:
     """The body of a recipe's ``@hydra.main`` function: ``mentor.name=human``'s defaults and every rule
-    (:func:`~pe_rlhf.algorithms.proxy_q.config.finish_config`), then :func:`run`."""
-    return recipe.hydra_task(cfg, finish=finish_config, train=run)
+    (:func:`~pe_rlhf.algorithms.proxy_q.config.finish_config`), then :func:`run` with the script's ``loop``."""
+    return recipe.hydra_task(cfg, finish=finish_config, train=functools.partial(run, loop=loop))
+
+
+def load_recipe_script(name: str, recipes_dir: str | Path | None = None):
+    """``<recipes_dir>/<name>/train.py`` as a module (its ``main(argv)`` runs the recipe); ``recipes_dir`` None: the
+    folder the configs are read from (:func:`~pe_rlhf.algorithms.proxy_q.config.default_config_path`)."""
+    from pe_rlhf.algorithms.proxy_q.config import default_config_path
+
+    if recipes_dir is None:
+        config = default_config_path()
+        if config is None:
+            raise FileNotFoundError("the recipes folder (recipes/<name>/train.py) is not found: run from a source "
+                                    "checkout or set $PE_RLHF_RECIPES")
+        recipes_dir = config.parent.parent
+    path = Path(recipes_dir) / name / "train.py"
+    spec = importlib.util.spec_from_file_location(f"pe_rlhf_recipe_{name}", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
 
 
 def load_run_config(options: RunOptions, overrides: list[str], config_path: str | Path | None) -> DictConfig:
@@ -67,9 +92,9 @@ def load_run_config(options: RunOptions, overrides: list[str], config_path: str 
     return load_config(config_path, overrides=overrides)
 
 
-def run(cfg: DictConfig, options: RunOptions = RunOptions()) -> dict:
-    """Train a validated ``cfg`` into ``options.out`` (or continue the run in ``options.resume``), write the
-    outputs, print the final table."""
+def run(cfg: DictConfig, options: RunOptions = RunOptions(), *, loop: Loop) -> dict:
+    """Train a validated ``cfg`` with the script's ``loop`` into ``options.out`` (or continue the run in
+    ``options.resume``), write the outputs, print the final table."""
     method = method_name(cfg)
     out = Path(options.resume) if options.resume else \
         Path(options.out or cfg.logger.out_dir or f"runs/{method.lower()}-{time.strftime('%Y%m%d-%H%M%S')}")
@@ -78,10 +103,10 @@ def run(cfg: DictConfig, options: RunOptions = RunOptions()) -> dict:
                       3 if rb.get("takeover_share") is not None else 2, saved_rows=int(cfg.collector.total_frames),
                       checkpoints=int(cfg.checkpoint.keep) + 1, folder=out)
     with hold_run_folder(out):  # one writer per run folder, for the run's whole life
-        return _run_in(out, cfg, options, method)
+        return _run_in(out, cfg, options, method, loop)
 
 
-def _run_in(out: Path, cfg: DictConfig, options: RunOptions, method: str) -> dict:
+def _run_in(out: Path, cfg: DictConfig, options: RunOptions, method: str, loop: Loop) -> dict:
     if options.resume:  # each changed setting applied (and said) or refused in one line; config.yaml follows
         announce_changes(load_config(out / "config.yaml", apply_profile=False), cfg, RESUME_REFUSED, str(out))
     save_config(cfg, out / "config.yaml", algorithm_name(cfg))
@@ -91,7 +116,7 @@ def _run_in(out: Path, cfg: DictConfig, options: RunOptions, method: str) -> dic
                        wandb_project=str(cfg.logger.wandb_project), tensorboard=bool(cfg.logger.tensorboard),
                        mlflow=bool(cfg.logger.mlflow),
                        config=to_container(cfg), resume=resume) as logger:
-        final = train(cfg, out, logger, checkpoint_dir=out / "checkpoints", resume=resume)
+        final = loop(cfg, out, logger, resume)
     write_json(out / "final_eval.json", final)
     plot_learning_curves(out / "metrics.csv", out, warmup_steps=int(cfg.collector.warmup_steps))
     report_final(out, method, final, options.compare, cfg)

@@ -1,7 +1,10 @@
-"""The PE-RLHF (HACO, HAIM-DRL) learner: warm-up, ensemble fit, online collection with takeovers, updates.
+"""The PE-RLHF (HACO, HAIM-DRL, PVP) learner's objects and helpers: warm-up, value-source fit, online collection with
+takeovers, updates.
 
-:class:`ProxyQLearner` plugs into :class:`~pe_rlhf.runtime.run.Run`, the loop every method shares (cadence,
-checkpoints, ``--resume``, finish); its batches, and :meth:`ProxyQLearner.learn` on each, in phases:
+``recipes/pe_rlhf/train.py`` owns the loop: for each of :meth:`ProxyQLearner.batches` it calls
+:meth:`ProxyQLearner.store`, the updater's ``notify_frames`` (the updates), :meth:`ProxyQLearner.row` and
+:meth:`pe_rlhf.runtime.run.Run.after_batch` (the cadence every method shares: evaluations, checkpoints, the
+log). The batches, in phases:
 
 1. warm-up: the mentor (or, with ``collector.warmup_policy``, the trained actor of an earlier run: the
    expert-policy warm-up) drives ``collector.warmup_steps`` steps (the transform forces it); the
@@ -50,16 +53,15 @@ from typing import TYPE_CHECKING
 
 import torch
 
-from pe_rlhf.evaluation import TorchRLPolicyAdapter, evaluate
 from pe_rlhf.modules import EnsembleSchedule
 from pe_rlhf.objectives import fit_q_ensemble
 from pe_rlhf.runtime.checkpoint import capture_rng, restore_rng
 from pe_rlhf.runtime.collection_state import capture_collection, restore_collection
-from pe_rlhf.runtime.run import Learner, Run
-from pe_rlhf.threads import torch_threads
+from pe_rlhf.runtime.run import Learner
 from pe_rlhf.algorithms.proxy_q import builders
 from pe_rlhf.algorithms.proxy_q.config import algorithm_name, method_name
-from pe_rlhf.algorithms.proxy_q.steps import batch_metrics, ensemble_transitions, relabel_warmup
+from pe_rlhf.algorithms.proxy_q.steps import (VIDEO_NAME, Counters, batch_metrics, cut_to, ensemble_transitions,
+                                              iteration_log, pacing_log, record_test_video, relabel_warmup)
 from pe_rlhf.transforms import InterventionTransform, RealtimePacing
 
 if TYPE_CHECKING:
@@ -93,111 +95,6 @@ RESUME_REFUSED = {
     "checkpoint.every_frames": lambda was, now: ("0 turns the journal off, and with it the batches it holds"
                                                  if int(now or 0) == 0 and int(was or 0) > 0 else None),
 }
-
-
-def cut_to(batch, frames: int):
-    """``batch`` without its steps past ``frames`` (the run's last batch after a short pending one: the collector
-    counts whole batches); a ``(workers, T)`` batch is cut along time, to the least ``T`` that covers ``frames``."""
-    if batch.numel() <= frames:
-        return batch
-    if batch.ndim == 1:
-        return batch[:frames]
-    return batch[..., : -(-frames // (batch.numel() // batch.shape[-1]))]
-
-
-class Counters:
-    """Cumulative training bookkeeping (saved in checkpoints)."""
-
-    def __init__(self):
-        self.frames = self.takeover_steps = self.takeover_starts = self.mentor_chosen_steps = 0.0
-        self.safety_violations = self.episodes = self.successes = self.updates = self.sim_errors = 0.0
-        self.online_frames = self.env_seconds = self.update_seconds = 0.0
-
-    def add(self, m: dict[str, float], warmup: bool) -> None:
-        self.frames += m["steps"]
-        self.safety_violations += m["safety_violations"]
-        self.episodes += m["episodes"]
-        self.successes += m["successes"]
-        self.sim_errors += m["sim_errors"]
-        if not warmup:
-            self.online_frames += m["steps"]
-            self.takeover_steps += m["takeover_steps"]
-            self.takeover_starts += m["takeover_starts"]
-            self.mentor_chosen_steps += m["mentor_chosen_steps"]
-
-    def state_dict(self) -> dict:
-        return dict(vars(self))
-
-    def load_state_dict(self, state: dict) -> None:
-        vars(self).update(state)
-
-
-VIDEO_NAME = "test_episode.gif"
-VIDEO_MAX_STEPS = 400
-
-
-def record_test_video(actor, cfg, env_config, path: Path, logger=None, step: int = 0) -> dict:
-    """A GIF of the trained agent (deterministic) on the first ``eval.split`` scene, at most
-    ``VIDEO_MAX_STEPS`` steps (40 s of driving), also sent to ``logger.log_video`` when the logger has
-    one (``eval/test_episode`` at ``step``); returns where it ended (success, crash, ...)."""
-    from pe_rlhf.envs import scene_seeds
-    from pe_rlhf.runtime.video import record_episode_gif
-
-    seed = scene_seeds(str(cfg.eval.split))[0]
-    log_video = getattr(logger, "log_video", None)
-    info = record_episode_gif(TorchRLPolicyAdapter(actor), env_config, seed, path, max_steps=VIDEO_MAX_STEPS,
-                              keep_video=log_video is not None)
-    if log_video is not None:
-        log_video("eval/test_episode", info["video"], step=step)
-    return {k: info[k] for k in ("path", "steps", "success", "crash_vehicle", "crash_object", "out_of_road")}
-
-
-def pacing_log(pacing: RealtimePacing | None, frames: int) -> dict[str, float]:
-    """Frame-time columns over the batch's last ``frames`` frames (none when the env is not paced)."""
-    if pacing is None:
-        return {}
-    stats = pacing.frame_stats(last=frames)
-    return {"time/frame_ms_mean": stats["frame_ms_mean"], "time/frame_jitter_ms_p95": stats["jitter_ms_p95"],
-            "time/frame_jitter_ms_max": stats["jitter_ms_max"]}
-
-
-def iteration_log(counters: Counters, m: dict, losses: dict) -> dict[str, float]:
-    online = max(counters.online_frames, 1.0)
-    log = {
-        "env_steps": counters.frames,
-        "train/safety_violations_total": counters.safety_violations,
-        "train/takeover_rate": m["takeover_steps"] / max(m["steps"], 1.0),
-        "train/takeover_count": counters.takeover_starts,
-        "train/takeover_data_usage": counters.takeover_steps / online,
-        "train/value_takeover_count": counters.mentor_chosen_steps,
-        "train/value_takeover_rate": counters.mentor_chosen_steps / max(counters.takeover_steps, 1.0),
-        "train/intervention_cost": m["intervention_cost"],
-        "train/success_rate_total": counters.successes / max(counters.episodes, 1.0),
-        "train/sim_errors_total": counters.sim_errors,
-        "time/env_seconds": counters.env_seconds,
-        "time/update_seconds": counters.update_seconds,
-    }
-    if "disturbance_cost" in m:  # HAIM-DRL
-        log["train/disturbance_cost"] = m["disturbance_cost"]
-    for k, v in losses.items():
-        log[f"loss/{k[5:]}" if k.startswith("loss_") else f"train/{k}"] = v
-    return log
-
-
-def train(cfg, out_dir: Path, logger, checkpoint_dir: Path | None = None, resume: bool = False) -> dict:
-    """Run the recipe described by ``cfg``; returns the final evaluation summary dict.
-
-    ``logger`` has ``log(step, metrics)`` (and ``truncate_after`` for resuming). With
-    ``checkpoint_dir``, checkpoints are written every ``checkpoint.every_frames``; with ``resume``,
-    the newest one there is loaded first and the run continues from its step.
-    """
-    torch.manual_seed(int(cfg.seed))
-    update_threads = torch.get_num_threads()
-    with torch_threads(1):
-        learner = ProxyQLearner(cfg, logger, checkpoint_dir, update_threads)
-        run = Run(cfg, learner, logger, checkpoint_dir, total=cfg.collector.total_frames,
-                  eval_every=cfg.eval.every_frames, checkpoint_every=cfg.checkpoint.every_frames)
-        return run.train(out_dir, resume)
 
 
 class ProxyQLearner(Learner):
@@ -239,7 +136,7 @@ class ProxyQLearner(Learner):
             self.env.append_transform(self.pending)  # last: it copies each step as the collector stores it
         self.updater = builders.build_updater(cfg, self.loss, self.optimizers, soft_update, self.replay,
                                               self.learner_actor, update_threads, self.device)
-        self.collector, self.losses, self.disconnects = None, {}, 0
+        self.collector, self.losses, self.disconnects, self.backlog = None, {}, 0, 0
         self.journaled: list[JournalEntry] = []  # on --resume: the killed run's batches since the checkpoint,
         self.journaled_pending: JournalEntry | None = None  # and its last batch up to the last finished episode
         self.resumed_collection: tuple[dict, dict | None] | None = None  # (collection, mentor state) to continue
@@ -354,11 +251,14 @@ class ProxyQLearner(Learner):
             yield cut_to(batch, int(self.cfg.collector.total_frames) - int(self.counters.frames)), False
             t_env = time.time()
 
-    def learn(self, item) -> dict[str, float]:
-        """One batch: journal, buffers, ensemble fit, updates; returns its row."""
+    def store(self, item) -> dict[str, float]:
+        """A batch from :meth:`batches` (``(batch, journaled)``) into the run: journaled first (on disk before
+        anything else happens to it), counted, the warm-up's relabelled (and kept to fit the value source on), the
+        replay buffer extended, the value source fitted when due. Returns the batch's counts
+        (:func:`~pe_rlhf.algorithms.proxy_q.steps.batch_metrics`)."""
         batch, journaled = item
         cfg, c = self.cfg, self.counters
-        if self.journal is not None and not journaled:  # on disk before anything else happens to it
+        if self.journal is not None and not journaled:
             self.journal.write(batch, int(c.frames), self._actor_state())
             self.journal.discard_pending(int(c.frames))  # its pending files: the whole batch is in now
         warmup = c.frames < int(cfg.collector.warmup_steps)
@@ -366,15 +266,24 @@ class ProxyQLearner(Learner):
         c.add(m, warmup)
         if warmup:
             self.warmup_buffer.extend(ensemble_transitions(batch).reshape(-1))  # (N, T) with multisync: time last
-        if warmup:
             batch = relabel_warmup(batch)
             m["intervention_cost"] = 0.0  # forced mentor driving is no takeover: nothing is charged
         with self.updater.lock:  # the learner thread samples from it
             self.replay.extend(batch.reshape(-1))
         self._fit_value_source()
-        backlog = self.updater.backlog  # updates owed by earlier batches, not run yet: 0 while the learner keeps up
-        if c.frames >= int(cfg.collector.learning_starts):
-            self.updater.notify_frames(int(m["steps"]))  # sync: the updates these frames pay for run here
+        self.backlog = self.updater.backlog  # updates owed by earlier batches, not run yet: 0 while it keeps up
+        return m
+
+    @property
+    def learning(self) -> bool:
+        """Whether updates run: ``collector.learning_starts`` frames are in."""
+        return self.counters.frames >= int(self.cfg.collector.learning_starts)
+
+    def row(self, m: dict[str, float]) -> dict[str, float]:
+        """After the batch's updates: the latest losses, the collector's policy weights synced, the batch's row of
+        metrics (``m``: :meth:`store`'s counts); a mentor's disconnect asks for a checkpoint."""
+        c = self.counters
+        if self.learning:
             self.losses = self.updater.latest_losses() or self.losses
             if self.collector is not None:
                 builders.sync_policy(self.collector)
@@ -382,7 +291,7 @@ class ProxyQLearner(Learner):
         c.update_seconds = self.update_seconds0 + self.updater.update_seconds
         metrics = iteration_log(c, m, self.losses)
         metrics["time/update_threads"] = float(self.updater.threads)
-        metrics["train/update_backlog"] = float(backlog)
+        metrics["train/update_backlog"] = float(self.backlog)
         metrics.update(pacing_log(self.pacing, int(m["steps"])))
         disconnects = int(getattr(self.mentor, "disconnects", 0) or 0)  # a person's window closed, pad unplugged
         metrics["train/mentor_disconnects"] = float(disconnects)

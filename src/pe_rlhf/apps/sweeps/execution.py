@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from pe_rlhf.apps.sweeps.cells import FINAL_EVAL, Cell, attempt_argv, cell_dir, log_path, plan, write_record
-from pe_rlhf.apps.sweeps.methods import PROXY_Q_RECIPES, proxy_q_config_path
+from pe_rlhf.apps.sweeps.methods import PROXY_Q_RECIPES
 
 THREAD_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS")
 
@@ -60,9 +60,9 @@ def _output_to(path: Path):
 
 def _run_recipe(recipe: str, policy: str | None, argv: list[str], directory: Path) -> None:
     if recipe in PROXY_Q_RECIPES:
-        from pe_rlhf.algorithms.proxy_q import recipe as proxy_q
+        from pe_rlhf.algorithms.proxy_q.recipe import load_recipe_script
 
-        proxy_q.main(argv, config_path=proxy_q_config_path(recipe))
+        load_recipe_script(recipe).main(argv)  # recipes/<recipe>/train.py: the loop is the script's
     elif recipe == "evaluate":
         _evaluate_only(policy, argv, directory)
     else:
