@@ -3,6 +3,8 @@ checked against the real simulator, and as the hybrid selector's value source (`
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -12,7 +14,7 @@ from pe_rlhf.algorithms.proxy_q.builders import build_q_ensemble, build_selector
 from pe_rlhf.algorithms.proxy_q.config import load_config
 from pe_rlhf.algorithms.proxy_q.value_expert import parse_value_source
 from pe_rlhf.transforms import HybridActionSelector
-from _scenes import add_obstacle, straight_env
+from _scenes import add_car, add_obstacle, place_ego, straight_env
 
 THROTTLE = np.array([0.0, 1.0], np.float32)
 BRAKE = np.array([0.0, -1.0], np.float32)
@@ -140,3 +142,55 @@ def test_lane_recovery_is_never_worse_than_the_route_recovery_on_a_straight():
 def test_recovery_must_be_known():
     with pytest.raises(ValueError, match="recovery='swerve'.*route"):
         SafetyForecastConfig(recovery="swerve")
+
+
+def behind_a_follower(gap: float, follower_speed: float, ego_speed: float = 15.0, lane: int = 1):
+    """The empty straight road, the ego at ``ego_speed`` in the middle lane and a car ``gap`` metres (centre to
+    centre) behind it in ``lane`` at ``follower_speed``, wanting to keep it."""
+    env = straight_env(scene_seed=0)
+    place_ego(env, 60.0, lane=1, speed=ego_speed)
+    add_car(env, 60.0 - gap, lane=lane, speed=follower_speed, target_speed=follower_speed)
+    return env
+
+
+def test_braking_hard_in_front_of_a_fast_follower_fails_sooner_than_keeping_speed():
+    """A car 12 m behind at 20 m/s brakes (its IDM, at most 6 m/s^2) once the ego is its leader: while the ego
+    holds 15 m/s it stops closing in time; full braking lets it close the gap to a rear-end within the horizon,
+    at the instant the simulator's follower hits the ego."""
+    env = behind_a_follower(gap=12.0, follower_speed=20.0)
+    keep, brake = time_to_failure(env, COAST), time_to_failure(env, BRAKE)
+    assert keep == pytest.approx(3.0)
+    assert brake < keep - 1.0
+    ignored = SafetyForecastConfig(followers=False)
+    assert time_to_failure(env, BRAKE, ignored) == pytest.approx(3.0)  # the old forecast: braking looked safe
+    steps = 0
+    while True:
+        _, _, terminated, truncated, info = env.step(BRAKE)
+        steps += 1
+        if terminated or truncated or steps > 40:
+            break
+    assert info["crash_vehicle"]
+    assert brake == pytest.approx(steps * 0.1, abs=0.15)
+
+
+def test_a_follower_with_room_to_stop_leaves_braking_safe():
+    """Followers are drivers, not constant-velocity objects: 45 m behind at the ego's speed, or in the next lane,
+    a follower brakes or passes, and full braking is safe over the horizon."""
+    for gap, lane in ((45.0, 1), (12.0, 0)):
+        env = behind_a_follower(gap=gap, follower_speed=15.0, lane=lane)
+        assert time_to_failure(env, BRAKE) == pytest.approx(3.0)
+
+
+def test_without_a_follower_the_forecast_is_unchanged():
+    """No moving road user behind: the forecast with followers is the old one, value for value."""
+    actions = (THROTTLE, BRAKE, COAST, np.array([0.4, 0.5], np.float32), np.array([-0.8, -0.2], np.float32))
+    scenes = [at_speed(15.0), at_speed(15.0, obstacle_ahead=40.0), at_speed(25.0, obstacle_ahead=60.0)]
+    ahead = straight_env(scene_seed=0)
+    place_ego(ahead, 40.0, lane=1, speed=15.0)
+    add_car(ahead, 60.0, lane=1, speed=5.0, target_speed=5.0)  # a slow car ahead: forecast as before
+    for env in scenes + [ahead]:
+        for action in actions:
+            for config in (SafetyForecastConfig(), SafetyForecastConfig(hold=3.0),
+                           SafetyForecastConfig(recovery="lanes", hold_one_lane=True)):
+                old = time_to_failure(env, action, dataclasses.replace(config, followers=False))
+                assert time_to_failure(env, action, config) == old
