@@ -194,3 +194,45 @@ def test_without_a_follower_the_forecast_is_unchanged():
                            SafetyForecastConfig(recovery="lanes", hold_one_lane=True)):
                 old = time_to_failure(env, action, dataclasses.replace(config, followers=False))
                 assert time_to_failure(env, action, config) == old
+
+
+def test_progress_is_the_route_distance_of_the_action_held_for_the_hold():
+    """At 15 m/s for 1 s on a straight: coasting 15 m; full throttle (3 m/s^2) and full braking (6 m/s^2) add or
+    take the Euler sum of the speed change (the simulator's order: move, then change speed)."""
+    env = at_speed(15.0)
+    progress = SafetyForecastValue().progress(torch.zeros(3, 270), torch.tensor(np.stack([COAST, THROTTLE, BRAKE])),
+                                              env=env)
+    assert progress.shape == (1, 3)
+    assert progress[0].tolist() == pytest.approx([15.0, 15.0 + 0.03 * 45, 15.0 - 0.06 * 45], abs=0.05)
+    assert SafetyForecastValue().progress(torch.zeros(1, 270), torch.tensor([[float("nan"), 0.0]]),
+                                          env=env)[0, 0] == -float("inf")
+
+
+def test_a_random_mentor_under_a_progress_margin_arrives_where_safety_alone_stops():
+    """The uniform-random adversary takes over at every step of the empty straight road. Judged on safety alone
+    its actions are rarely forecast to fail, it keeps the wheel and its mean braking stops the car; with a 1 m
+    progress margin physics drives where the random action falls behind it, and the car arrives, never
+    leaving the road either way."""
+    from pe_rlhf.mentors import make_mentor
+    from pe_rlhf.physics import IDMMobilPolicy, PhysicsConfig
+
+    def run(progress_margin):
+        env = straight_env(scene_seed=0)
+        env.vehicle.speed = 8.0
+        mentor, physics = make_mentor("uniform-random", 0), IDMMobilPolicy(PhysicsConfig())
+        selector = HybridActionSelector(SafetyForecastValue(), -0.5, persistence="latch",
+                                        reference="physics_or_recovery", strict_in_danger=True,
+                                        progress_margin=progress_margin)
+        streak, info = None, {}
+        for _ in range(400):
+            executed, _, streak, _, _ = selector.judge(torch.zeros(1), torch.as_tensor(mentor.act(env)),
+                                                       torch.as_tensor(np.asarray(physics(env), np.float32)),
+                                                       None, streak, env=env)
+            _, _, terminated, truncated, info = env.step(executed.numpy())
+            if terminated or truncated:
+                break
+        return info
+
+    safety_alone, with_progress = run(None), run(1.0)
+    assert not safety_alone.get("success") and not safety_alone.get("out_of_road")
+    assert with_progress.get("success") and not with_progress.get("crash_vehicle")

@@ -235,6 +235,29 @@ class SafetyForecastValue(torch.nn.Module):
         config = dataclasses.replace(self.config, hold=self.config.horizon)
         return self._forecast(actions, env, config)
 
+    def progress(self, observation: torch.Tensor, actions: torch.Tensor, env=None) -> torch.Tensor:
+        """``(1, N)`` float32: metres along the route the ego makes holding each of the ``N`` actions ``(N, 2)``
+        for ``hold`` seconds (the vehicle model alone: nothing is checked for failure). What a value of safety
+        does not measure: a safe action can stop the car (``HybridActionSelector(progress_margin=...)``)."""
+        if env is None:
+            raise ValueError("SafetyForecastValue.progress needs env= (the simulator to forecast from)")
+        sim = getattr(env, "unwrapped", env)
+        forecast = _Forecast(sim, dataclasses.replace(self.config, followers=False))
+        start = sim.route.project(sim.vehicle.position, sim.route_segment)
+        steps = min(int(round(self.config.hold / self.config.dt)), forecast.steps)
+        out = []
+        for action in actions.reshape(-1, actions.shape[-1]).detach().cpu().numpy():
+            if not np.all(np.isfinite(action)):
+                out.append(-math.inf)
+                continue
+            steering, accel = action_to_controls(action)
+            state = (np.array(sim.vehicle.position, float), float(sim.vehicle.heading), float(sim.vehicle.speed),
+                     start[0], None)
+            for _ in range(steps):
+                state = forecast.advance(state, steering, accel)
+            out.append(float(sim.route.project(state[0], start[0])[1] - start[1]))
+        return torch.tensor([out], dtype=torch.float32)
+
     def recovery_value(self, env=None) -> torch.Tensor:
         """``(1, 1)``: seconds until a failure when the recovery starts now (no hold; the action is not read):
         what any fallback that brakes at once can reach (``HybridActionSelector(reference=...)``)."""
