@@ -115,13 +115,14 @@ class Followers:
         return s + v * dt, new_v  # highway-env moves on the speed before the update
 
     def poses(self, state):
-        """``(position (2,), heading, length, width)`` of each follower in ``state``."""
-        s, _ = state
+        """``(position (2,), heading, length, width, velocity (2,))`` of each follower in ``state``."""
+        s, v = state
         out = []
         for j, m in enumerate(self.models):
             lane = m.lanes[0]
-            out.append((np.asarray(lane.position(s[j], m.lateral), float), float(lane.heading_at(s[j])),
-                        m.length, m.width))
+            heading = float(lane.heading_at(s[j]))
+            out.append((np.asarray(lane.position(s[j], m.lateral), float), heading, m.length, m.width,
+                        v[j] * np.array([math.cos(heading), math.sin(heading)])))
         return out
 
     @staticmethod

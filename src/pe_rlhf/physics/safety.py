@@ -161,22 +161,26 @@ class _Forecast:
         return position, heading, speed, segment, behind
 
     def failed(self, state, i: int) -> bool:
-        """Whether the ego at ``state``, ``i`` steps ahead, is off the road or overlaps a road user."""
-        position, heading = state[0], state[1]
+        """Whether the ego at ``state``, ``i`` steps ahead, is off the road or touches a road user within the
+        last ``dt``: the simulator's own test (highway-env's ``are_polygons_intersecting`` with each body's
+        displacement, which the env counts as a crash, ``impact``), swept back over the step."""
+        position, heading, speed = state[0], state[1], state[2]
         if not self.env.road.network.is_on_road(position, ROAD_EDGE_MARGIN):
             return True
-        t, ego = i * self.config.dt, self.ego
+        t, ego, dt = i * self.config.dt, self.ego, self.config.dt
         ego_corners = None  # built only when a road user is near enough to touch (most steps: none)
+        ego_back = -speed * dt * np.array([math.cos(heading), math.sin(heading)])
         behind = [] if state[4] is None else self.followers.poses(state[4])
-        for other, head, length, width in [(pos + vel * t, head, length, width)
-                                           for pos, vel, head, length, width in self.others] + behind:
+        for other, head, length, width, vel in [(pos + vel * t, head, length, width, vel)
+                                                for pos, vel, head, length, width in self.others] + behind:
             if math.hypot(other[0] - position[0], other[1] - position[1]) > \
-                    (length + ego.LENGTH) / 2 + (width + ego.WIDTH) / 2:
+                    (length + ego.LENGTH) / 2 + (width + ego.WIDTH) / 2 + (speed + math.hypot(*vel)) * dt:
                 continue
             if ego_corners is None:
                 ego_corners = utils.rect_corners(position, ego.LENGTH, ego.WIDTH, heading)
-            if utils.are_polygons_intersecting(ego_corners, utils.rect_corners(other, length, width, head),
-                                               np.zeros(2), np.zeros(2))[0]:
+            touching, swept, _ = utils.are_polygons_intersecting(
+                ego_corners, utils.rect_corners(other, length, width, head), ego_back, -vel * dt)
+            if touching or swept:
                 return True
         return False
 
