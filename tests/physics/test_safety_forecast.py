@@ -236,3 +236,17 @@ def test_a_random_mentor_under_a_progress_margin_arrives_where_safety_alone_stop
     safety_alone, with_progress = run(None), run(1.0)
     assert not safety_alone.get("success") and not safety_alone.get("out_of_road")
     assert with_progress.get("success") and not with_progress.get("crash_vehicle")
+
+
+def test_a_corner_passing_within_one_step_is_a_crash_as_in_the_simulator():
+    """The ego creeps at 0.5 m/s turned 20 degrees towards the next lane, where a car 3.5 m ahead drives off at
+    8 m/s: the bodies never overlap at a forecast instant, but the car's corner sweeps past the ego's within one
+    step, which the simulator counts as a crash (highway-env's polygon test with displacements). The forecast
+    uses the same test and fails at the simulator's step."""
+    env = straight_env(scene_seed=0)
+    place_ego(env, 60.0, lane=1, speed=0.5, lateral=-1.5, dheading=-0.35)
+    add_car(env, 63.5, lane=0, speed=8.0, target_speed=8.0)
+    forecast = time_to_failure(env, COAST)
+    _, _, terminated, _, info = env.step(COAST)
+    assert terminated and info["crash_vehicle"]
+    assert forecast == pytest.approx(0.1)
