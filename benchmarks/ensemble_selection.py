@@ -137,8 +137,9 @@ def measure(mentors: list[str], scenes: list[int], split: str, value: str, epsil
             forecast_hold: float = 1.0, forecast_recovery: str = "route", veto_patience: int = 1,
             imminent_failure: float | None = None, one_lane: bool = False,
             persistence: list[str] = ("off",), references: list[str] = ("physics",),
-            strict: list[bool] = (False,)) -> list[dict]:
-    """Every row (see the module docstring) for every mentor, IDM-MOBIL alone once."""
+            strict: list[bool] = (False,), progress_margins: list[float | None] = (None,), save=None) -> list[dict]:
+    """Every row (see the module docstring) for every mentor, IDM-MOBIL alone once. ``save(results)`` is called
+    after each row (a long run keeps what it measured)."""
     world = DrivingConfig(split=split, lane_features=True)
     kind, path = parse_value_source(value)
     if kind == "warmup":
@@ -146,16 +147,19 @@ def measure(mentors: list[str], scenes: list[int], split: str, value: str, epsil
                          "forecast")
     ensemble = forecast_value(forecast_hold, forecast_recovery, one_lane) if kind == "forecast" \
         else load_value_expert(path, world_obs_dim(world))
-    results = [{"mentor": None, "row": "idm-mobil", **drive(None, scenes, split, world=world, progress="idm-mobil")}]
+    results = _Rows(save)
+    results.append({"mentor": None, "row": "idm-mobil", **drive(None, scenes, split, world=world, progress="idm-mobil")})
     for mentor in mentors:
         results.append({"mentor": mentor, "row": "as-is",
                         **drive(mentor, scenes, split, world=world, progress=f"{mentor} as-is")})
         for eps in epsilons:
             for margin in switch_margins:
-                for persist, reference, st in [(p, r, t) for p in persistence for r in references for t in strict]:
+                for persist, reference, st, pm in [(p, r, t, m) for p in persistence for r in references
+                                                   for t in strict for m in progress_margins]:
                     selector = HybridActionSelector(ensemble, eps, variance_threshold, switch_margin=margin,
                                                     veto_patience=veto_patience, imminent_failure=imminent_failure,
-                                                    persistence=persist, reference=reference, strict_in_danger=st)
+                                                    persistence=persist, reference=reference, strict_in_danger=st,
+                                                    progress_margin=pm)
                     label = f"hybrid eps={eps:g} margin={'none' if margin is None else f'{margin:g}'}"
                     if veto_patience > 1:
                         label += f" patience={veto_patience} imminent={imminent_failure}"
@@ -165,11 +169,29 @@ def measure(mentors: list[str], scenes: list[int], split: str, value: str, epsil
                         label += f" reference={reference}"
                     if st:
                         label += " strict"
+                    if pm is not None:
+                        label += f" progress={pm:g}"
                     results.append({"mentor": mentor, "row": label, "epsilon_select": eps, "switch_margin": margin,
-                                    "persistence": persist, "reference": reference,
-                                    "strict_in_danger": st, **drive(mentor, scenes, split, selector, world=world,
-                                                                    progress=f"{mentor} {label}")})
-    return results
+                                    "persistence": persist, "reference": reference, "strict_in_danger": st,
+                                    "progress_margin": pm,
+                                    **drive(mentor, scenes, split, selector, world=world,
+                                            progress=f"{mentor} {label}")})
+    return list(results)
+
+
+class _Rows(list):
+    """The rows measured so far; each append prints the row and hands the list to ``save`` (when given)."""
+
+    def __init__(self, save=None):
+        super().__init__()
+        self.save = save
+
+    def append(self, row: dict) -> None:
+        super().append(row)
+        print(f"{row['mentor'] or '-'} | {row['row']}: success {row['success']:.2f}, violation "
+              f"{row['violation']:.2f}, mentor share {row['mentor_share']:.2f}", flush=True)
+        if self.save is not None:
+            self.save(list(self))
 
 
 def warmup_rows(mentors: list[str], scenes: list[int], split: str, value: str, epsilons: list[float]) -> list[dict]:
@@ -255,6 +277,9 @@ def main(argv=None) -> list[dict]:
                         "compared with (physics' action, or the better of it and braking at once)")
     parser.add_argument("--strict", nargs="+", choices=["off", "on"], default=["off"],
                         help="selector.strict_in_danger with --value forecast: no slack where physics itself fails")
+    parser.add_argument("--progress-margins", type=margin_arg, nargs="+", default=[None],
+                        help="selector progress_margin [m] with --value forecast (none: safety alone): the mentor's "
+                        "action held 1 s must make physics' progress less this, where physics is safe")
     parser.add_argument("--hold-one-lane", action="store_true", help="selector.forecast_hold_one_lane: the hold "
                         "ends once the car has moved one lane width sideways")
     parser.add_argument("--forecast-recovery", choices=["route", "lanes"], default="route",
@@ -271,6 +296,14 @@ def main(argv=None) -> list[dict]:
     torch.set_num_threads(1)
     t = time.time()
     scenes = parse_scenes(args.scenes, args.split)
+
+    def save(results: list[dict]) -> None:
+        if args.json:
+            args.json.parent.mkdir(parents=True, exist_ok=True)
+            args.json.write_text(json.dumps({"args": {k: str(v) if isinstance(v, Path) else v
+                                                      for k, v in vars(args).items()},
+                                             "results": results}, indent=2, default=str) + "\n")
+
     if args.warmup:
         results = warmup_rows(args.mentors, scenes, args.split, args.value, args.epsilons)
     elif args.takeover_rates is not None:
@@ -281,15 +314,11 @@ def main(argv=None) -> list[dict]:
         results = measure(args.mentors, scenes, args.split, args.value, args.epsilons, args.switch_margins,
                       args.variance_threshold, args.forecast_hold, args.forecast_recovery,
                           args.veto_patience, args.imminent_failure, args.hold_one_lane, args.persistence,
-                          args.references, [s == "on" for s in args.strict])
+                          args.references, [s == "on" for s in args.strict], args.progress_margins, save)
     print(format_table(results))
     print(f"{len(scenes)} {args.split} scenes ({scenes[0]}-{scenes[-1]}), value {args.value}, "
           f"{time.time() - t:.0f} s", flush=True)
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps({"args": {k: str(v) if isinstance(v, Path) else v
-                                                  for k, v in vars(args).items()},
-                                         "results": results}, indent=2, default=str) + "\n")
+    save(results)
     return results
 
 

@@ -3,6 +3,8 @@ checked against the real simulator, and as the hybrid selector's value source (`
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -12,7 +14,7 @@ from pe_rlhf.algorithms.proxy_q.builders import build_value_source, build_select
 from pe_rlhf.algorithms.proxy_q.config import load_config
 from pe_rlhf.algorithms.proxy_q.value_expert import parse_value_source
 from pe_rlhf.transforms import HybridActionSelector
-from _scenes import add_obstacle, straight_env
+from _scenes import add_car, add_obstacle, place_ego, straight_env
 
 THROTTLE = np.array([0.0, 1.0], np.float32)
 BRAKE = np.array([0.0, -1.0], np.float32)
@@ -140,3 +142,111 @@ def test_lane_recovery_is_never_worse_than_the_route_recovery_on_a_straight():
 def test_recovery_must_be_known():
     with pytest.raises(ValueError, match="recovery='swerve'.*route"):
         SafetyForecastConfig(recovery="swerve")
+
+
+def behind_a_follower(gap: float, follower_speed: float, ego_speed: float = 15.0, lane: int = 1):
+    """The empty straight road, the ego at ``ego_speed`` in the middle lane and a car ``gap`` metres (centre to
+    centre) behind it in ``lane`` at ``follower_speed``, wanting to keep it."""
+    env = straight_env(scene_seed=0)
+    place_ego(env, 60.0, lane=1, speed=ego_speed)
+    add_car(env, 60.0 - gap, lane=lane, speed=follower_speed, target_speed=follower_speed)
+    return env
+
+
+def test_braking_hard_in_front_of_a_fast_follower_fails_sooner_than_keeping_speed():
+    """A car 12 m behind at 20 m/s brakes (its IDM, at most 6 m/s^2) once the ego is its leader: while the ego
+    holds 15 m/s it stops closing in time; full braking lets it close the gap to a rear-end within the horizon,
+    at the instant the simulator's follower hits the ego."""
+    env = behind_a_follower(gap=12.0, follower_speed=20.0)
+    keep, brake = time_to_failure(env, COAST), time_to_failure(env, BRAKE)
+    assert keep == pytest.approx(3.0)
+    assert brake < keep - 1.0
+    ignored = SafetyForecastConfig(followers=False)
+    assert time_to_failure(env, BRAKE, ignored) == pytest.approx(3.0)  # the old forecast: braking looked safe
+    steps = 0
+    while True:
+        _, _, terminated, truncated, info = env.step(BRAKE)
+        steps += 1
+        if terminated or truncated or steps > 40:
+            break
+    assert info["crash_vehicle"]
+    assert brake == pytest.approx(steps * 0.1, abs=0.15)
+
+
+def test_a_follower_with_room_to_stop_leaves_braking_safe():
+    """Followers are drivers, not constant-velocity objects: 45 m behind at the ego's speed, or in the next lane,
+    a follower brakes or passes, and full braking is safe over the horizon."""
+    for gap, lane in ((45.0, 1), (12.0, 0)):
+        env = behind_a_follower(gap=gap, follower_speed=15.0, lane=lane)
+        assert time_to_failure(env, BRAKE) == pytest.approx(3.0)
+
+
+def test_without_a_follower_the_forecast_is_unchanged():
+    """No moving road user behind: the forecast with followers is the old one, value for value."""
+    actions = (THROTTLE, BRAKE, COAST, np.array([0.4, 0.5], np.float32), np.array([-0.8, -0.2], np.float32))
+    scenes = [at_speed(15.0), at_speed(15.0, obstacle_ahead=40.0), at_speed(25.0, obstacle_ahead=60.0)]
+    ahead = straight_env(scene_seed=0)
+    place_ego(ahead, 40.0, lane=1, speed=15.0)
+    add_car(ahead, 60.0, lane=1, speed=5.0, target_speed=5.0)  # a slow car ahead: forecast as before
+    for env in scenes + [ahead]:
+        for action in actions:
+            for config in (SafetyForecastConfig(), SafetyForecastConfig(hold=3.0),
+                           SafetyForecastConfig(recovery="lanes", hold_one_lane=True)):
+                old = time_to_failure(env, action, dataclasses.replace(config, followers=False))
+                assert time_to_failure(env, action, config) == old
+
+
+def test_progress_is_the_route_distance_of_the_action_held_for_the_hold():
+    """At 15 m/s for 1 s on a straight: coasting 15 m; full throttle (3 m/s^2) and full braking (6 m/s^2) add or
+    take the Euler sum of the speed change (the simulator's order: move, then change speed)."""
+    env = at_speed(15.0)
+    progress = SafetyForecastValue().progress(torch.zeros(3, 270), torch.tensor(np.stack([COAST, THROTTLE, BRAKE])),
+                                              env=env)
+    assert progress.shape == (1, 3)
+    assert progress[0].tolist() == pytest.approx([15.0, 15.0 + 0.03 * 45, 15.0 - 0.06 * 45], abs=0.05)
+    assert SafetyForecastValue().progress(torch.zeros(1, 270), torch.tensor([[float("nan"), 0.0]]),
+                                          env=env)[0, 0] == -float("inf")
+
+
+def test_a_random_mentor_under_a_progress_margin_arrives_where_safety_alone_stops():
+    """The uniform-random adversary takes over at every step of the empty straight road. Judged on safety alone
+    its actions are rarely forecast to fail, it keeps the wheel and its mean braking stops the car; with a 1 m
+    progress margin physics drives where the random action falls behind it, and the car arrives, never
+    leaving the road either way."""
+    from pe_rlhf.mentors import make_mentor
+    from pe_rlhf.physics import IDMMobilPolicy, PhysicsConfig
+
+    def run(progress_margin):
+        env = straight_env(scene_seed=0)
+        env.vehicle.speed = 8.0
+        mentor, physics = make_mentor("uniform-random", 0), IDMMobilPolicy(PhysicsConfig())
+        selector = HybridActionSelector(SafetyForecastValue(), -0.5, persistence="latch",
+                                        reference="physics_or_recovery", strict_in_danger=True,
+                                        progress_margin=progress_margin)
+        streak, info = None, {}
+        for _ in range(400):
+            executed, _, streak, _, _ = selector.judge(torch.zeros(1), torch.as_tensor(mentor.act(env)),
+                                                       torch.as_tensor(np.asarray(physics(env), np.float32)),
+                                                       None, streak, env=env)
+            _, _, terminated, truncated, info = env.step(executed.numpy())
+            if terminated or truncated:
+                break
+        return info
+
+    safety_alone, with_progress = run(None), run(1.0)
+    assert not safety_alone.get("success") and not safety_alone.get("out_of_road")
+    assert with_progress.get("success") and not with_progress.get("crash_vehicle")
+
+
+def test_a_corner_passing_within_one_step_is_a_crash_as_in_the_simulator():
+    """The ego creeps at 0.5 m/s turned 20 degrees towards the next lane, where a car 3.5 m ahead drives off at
+    8 m/s: the bodies never overlap at a forecast instant, but the car's corner sweeps past the ego's within one
+    step, which the simulator counts as a crash (highway-env's polygon test with displacements). The forecast
+    uses the same test and fails at the simulator's step."""
+    env = straight_env(scene_seed=0)
+    place_ego(env, 60.0, lane=1, speed=0.5, lateral=-1.5, dheading=-0.35)
+    add_car(env, 63.5, lane=0, speed=8.0, target_speed=8.0)
+    forecast = time_to_failure(env, COAST)
+    _, _, terminated, _, info = env.step(COAST)
+    assert terminated and info["crash_vehicle"]
+    assert forecast == pytest.approx(0.1)

@@ -276,6 +276,9 @@ class TableForecast(torch.nn.Module):
     def recovery_action(self, env=None):
         return torch.tensor([-9.0, -1.0])  # marked: a steering no policy proposes
 
+    def progress(self, obs, acts):  # the second action entry as metres of progress
+        return acts[..., 1].reshape(1, -1).float()
+
 
 def test_a_latched_veto_holds_until_the_repeated_action_is_safe():
     """One-step values: mentor 2.9 vs physics 3.0 passes eps -0.5, 2.0 does not. Repeated: 2.9 -> 1.0 (unsafe
@@ -319,6 +322,31 @@ def test_strict_in_danger_removes_the_slack_where_physics_itself_fails(mentor, p
     assert bool(sel.select(torch.zeros(1), torch.tensor([mentor, 0.0]), torch.tensor([physics, 0.0]))[1]) is chosen
     loose = HybridActionSelector(TableForecast({}), -0.5)
     assert bool(loose.select(torch.zeros(1), torch.tensor([mentor, 0.0]), torch.tensor([physics, 0.0]))[1])
+
+
+def test_a_safe_action_that_makes_too_little_progress_is_vetoed_with_a_progress_margin():
+    """Entries: (seconds to failure, metres of progress held 1 s). Physics safe over the horizon and making
+    10 m: a mentor as safe but 1.5 m short is vetoed with a 1 m margin, 0.5 m short is not; without the
+    margin safety alone decides. Where physics is itself forecast to fail, progress is not asked."""
+    obs, phy = torch.zeros(1), torch.tensor([3.0, 10.0])
+    sel = HybridActionSelector(TableForecast({}), -0.5, progress_margin=1.0)
+    safety_alone = HybridActionSelector(TableForecast({}), -0.5)
+    for mentor, chosen in (([3.0, 8.5], False), ([3.0, 9.5], True), ([2.8, 12.0], True)):
+        assert bool(sel.select(obs, torch.tensor(mentor), phy)[1]) is chosen, mentor
+        assert bool(safety_alone.select(obs, torch.tensor(mentor), phy)[1])
+    in_danger = torch.tensor([2.0, 10.0])
+    assert bool(sel.select(obs, torch.tensor([2.5, 0.0]), in_danger)[1])
+    latched = HybridActionSelector(TableForecast({3.0: 3.0}), -0.5, persistence="latch", progress_margin=1.0)
+    _, chosen, streak, _, _ = latched.judge(obs, torch.tensor([3.0, 8.5]), phy)
+    assert not bool(chosen) and streak.tolist() == [1]  # a progress veto is a veto: the latch holds it
+
+
+@pytest.mark.parametrize("margin", [-1.0, float("nan"), float("inf"), True])
+def test_invalid_progress_margin_raises(margin):
+    with pytest.raises(ValueError, match="progress_margin"):
+        HybridActionSelector(TableForecast({}), -0.5, progress_margin=margin)
+    with pytest.raises(ValueError, match="needs a value source"):
+        HybridActionSelector(ExactQ(), -0.5, progress_margin=1.0)
 
 
 @pytest.mark.parametrize("kwargs, match", [

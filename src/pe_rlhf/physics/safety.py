@@ -4,8 +4,9 @@ The value estimator of the hybrid selector must know that an action is *bad*, an
 crash-free driving (or an expert's critics, which assume the expert's own continuation) does not. This
 module predicts it from the vehicle model instead: the ego, a kinematic bicycle (the same equations as the
 simulator's ``highway_env`` vehicle), holds the candidate action for ``hold`` seconds, then recovers as well
-as a car can (full braking, steering back along the route); road users ahead keep their velocity and static
-obstacles stay. The candidate *fails* at the first forecast instant its body overlaps one of them or its
+as a car can (full braking, steering back along the route); road users ahead keep their velocity, static
+obstacles stay, and moving road users behind drive on under the IDM, braking for the ego only once it is in
+their lane and no harder than their car can (:mod:`pe_rlhf.physics.followers`; ``followers=False``: ignored). The candidate *fails* at the first forecast instant its body overlaps one of them or its
 centre leaves the road (the env's own ``is_on_road`` test and edge margin).
 
 :func:`time_to_failure` returns that instant in seconds (``horizon`` when nothing fails), so larger is
@@ -14,8 +15,8 @@ for :class:`~pe_rlhf.transforms.HybridActionSelector` (``selector.value=forecast
 is executed unless it fails sooner than physics' by ``epsilon_select`` seconds or more.
 
 It reads the simulator's true state (privileged), as the physics policy and the simulated mentors do.
-Road users behind the ego are ignored: they are drivers who brake for it, which a constant-velocity
-forecast would not know.
+A road user behind is a driver who brakes for the ego, which a constant-velocity forecast would not know;
+ignoring it (as before ``followers``) judged hard braking in front of a fast follower safe.
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ from highway_env import utils
 from pe_rlhf.envs.action import MAX_BRAKING, MAX_STEERING, action_to_controls, controls_to_action
 from pe_rlhf.envs.driving_env import ROAD_EDGE_MARGIN  # the env's own off-road test, not a copy of it
 from pe_rlhf.envs.geometry import LANE_WIDTH
+from pe_rlhf.physics.followers import Followers
 
 NEAR = 60.0  # [m] road users farther than this cannot be reached within a forecast
 RECOVERY_STEERING_GAIN = 1.5  # [rad of wheel angle per rad of heading error] while recovering
@@ -46,7 +48,8 @@ LANE_MAX_HEADING_OFFSET = math.pi / 8  # [rad] largest angle to the lane taken t
 @dataclass(frozen=True)
 class SafetyForecastConfig:
     """``hold`` [s]: the candidate action is held this long; ``horizon`` [s]: the forecast's length;
-    ``dt`` [s]: its integration step; ``recovery_braking`` [m/s^2]: deceleration after ``hold``."""
+    ``dt`` [s]: its integration step; ``recovery_braking`` [m/s^2]: deceleration after ``hold``;
+    ``followers``: moving road users behind the ego drive on under the IDM (False: they are ignored)."""
 
     hold: float = 1.0
     horizon: float = 3.0
@@ -54,6 +57,7 @@ class SafetyForecastConfig:
     recovery_braking: float = MAX_BRAKING
     recovery: str = "route"
     hold_one_lane: bool = False
+    followers: bool = True
 
     def __post_init__(self) -> None:
         if self.recovery not in RECOVERIES:
@@ -68,8 +72,8 @@ class SafetyForecastConfig:
 
 
 def _others(env) -> list[tuple[np.ndarray, np.ndarray, float, float, float]]:
-    """``(position, velocity, heading, length, width)`` of the road users that can matter: static objects
-    near the ego, and vehicles near it and ahead of it."""
+    """``(position, velocity, heading, length, width)`` of the road users that keep their velocity: static
+    objects near the ego, and vehicles near it and ahead of it (those behind: :class:`Followers`)."""
     ego = env.vehicle
     forward = np.array([math.cos(ego.heading), math.sin(ego.heading)])
     out = []
@@ -80,7 +84,7 @@ def _others(env) -> list[tuple[np.ndarray, np.ndarray, float, float, float]]:
         if np.linalg.norm(rel) > NEAR:
             continue
         speed = float(getattr(obj, "speed", 0.0))
-        if speed > 0.1 and rel @ forward < 0:  # a driver behind: it brakes for us
+        if speed > 0.1 and rel @ forward < 0:  # a driver behind: it brakes for us (Followers forecasts it)
             continue
         velocity = speed * np.array([math.cos(obj.heading), math.sin(obj.heading)])
         out.append((np.asarray(obj.position, float), velocity, float(obj.heading), float(obj.LENGTH),
@@ -97,7 +101,8 @@ def time_to_failure(env, action, config: SafetyForecastConfig | None = None) -> 
     ego = env.vehicle
     forecast = _Forecast(env, config)
     steering, accel = action_to_controls(action)
-    state = (np.array(ego.position, float), float(ego.heading), float(ego.speed), env.route_segment)
+    state = (np.array(ego.position, float), float(ego.heading), float(ego.speed), env.route_segment,
+             forecast.behind0)
     hold_steps = min(int(round(config.hold / config.dt)), forecast.steps)
     lateral0 = env.route.lateral_offset(state[0], state[3]) if config.hold_one_lane else 0.0
     for i in range(1, hold_steps + 1):
@@ -106,7 +111,7 @@ def time_to_failure(env, action, config: SafetyForecastConfig | None = None) -> 
             return i * config.dt
         if config.hold_one_lane:
             segment, _ = env.route.project(state[0], state[3])
-            state = (state[0], state[1], state[2], segment)
+            state = _on_segment(state, segment)
             if abs(env.route.lateral_offset(state[0], segment) - lateral0) >= LANE_WIDTH:
                 hold_steps = i  # one lane change done: a driver steers no further
                 break
@@ -124,47 +129,64 @@ def time_to_failure(env, action, config: SafetyForecastConfig | None = None) -> 
     return best
 
 
+def _on_segment(state, segment):
+    """``state`` with the ego's route segment replaced."""
+    return state[:3] + (segment,) + state[4:]
+
+
 class _Forecast:
-    """One forecast's fixed context: the ego's size, the road users that can matter, the route."""
+    """One forecast's fixed context: the ego's size, the road users that can matter, the route.
+
+    A forecast state: ``(position, heading, speed, route segment, behind)``, ``behind`` the followers' state
+    (:class:`~pe_rlhf.physics.followers.Followers`; None without followers)."""
 
     def __init__(self, env, config: SafetyForecastConfig):
         self.env, self.config, self.ego = env, config, env.vehicle
         self.others = _others(env)
+        self.followers = Followers(env, NEAR) if config.followers else None
+        self.behind0 = self.followers.initial() if self.followers else None
         self.steps = int(round(config.horizon / config.dt))
         self.max_speed = float(getattr(self.ego, "MAX_SPEED", 40.0))
 
     def advance(self, state, steering: float, accel: float):
-        """One ``dt`` of the kinematic bicycle (the simulator's equations)."""
-        position, heading, speed, segment = state
+        """One ``dt`` of the kinematic bicycle (the simulator's equations), and of the followers."""
+        position, heading, speed, segment, behind = state
         dt, half = self.config.dt, self.ego.LENGTH / 2
+        if behind is not None:  # they react to where the ego is now, then all move (the simulator's order)
+            behind = self.followers.step(behind, position, heading, speed, dt)
         beta = math.atan(0.5 * math.tan(steering))
         position = position + speed * np.array([math.cos(heading + beta), math.sin(heading + beta)]) * dt
         heading += speed * math.sin(beta) / half * dt
         speed = min(max(speed + accel * dt, 0.0), self.max_speed)
-        return position, heading, speed, segment
+        return position, heading, speed, segment, behind
 
     def failed(self, state, i: int) -> bool:
-        """Whether the ego at ``state``, ``i`` steps ahead, is off the road or overlaps a road user."""
-        position, heading = state[0], state[1]
+        """Whether the ego at ``state``, ``i`` steps ahead, is off the road or touches a road user within the
+        last ``dt``: the simulator's own test (highway-env's ``are_polygons_intersecting`` with each body's
+        displacement, which the env counts as a crash, ``impact``), swept back over the step."""
+        position, heading, speed = state[0], state[1], state[2]
         if not self.env.road.network.is_on_road(position, ROAD_EDGE_MARGIN):
             return True
-        t, ego = i * self.config.dt, self.ego
+        t, ego, dt = i * self.config.dt, self.ego, self.config.dt
         ego_corners = None  # built only when a road user is near enough to touch (most steps: none)
-        for pos, vel, head, length, width in self.others:
-            other = pos + vel * t
+        ego_back = -speed * dt * np.array([math.cos(heading), math.sin(heading)])
+        behind = [] if state[4] is None else self.followers.poses(state[4])
+        for other, head, length, width, vel in [(pos + vel * t, head, length, width, vel)
+                                                for pos, vel, head, length, width in self.others] + behind:
             if math.hypot(other[0] - position[0], other[1] - position[1]) > \
-                    (length + ego.LENGTH) / 2 + (width + ego.WIDTH) / 2:
+                    (length + ego.LENGTH) / 2 + (width + ego.WIDTH) / 2 + (speed + math.hypot(*vel)) * dt:
                 continue
             if ego_corners is None:
                 ego_corners = utils.rect_corners(position, ego.LENGTH, ego.WIDTH, heading)
-            if utils.are_polygons_intersecting(ego_corners, utils.rect_corners(other, length, width, head),
-                                               np.zeros(2), np.zeros(2))[0]:
+            touching, swept, _ = utils.are_polygons_intersecting(
+                ego_corners, utils.rect_corners(other, length, width, head), ego_back, -vel * dt)
+            if touching or swept:
                 return True
         return False
 
     def recovery_steering(self, state, slot: int | None) -> float:
         """Full braking's steering: back along the route (``slot`` None), or towards lane ``slot``'s centre."""
-        position, heading, speed, segment = state
+        position, heading, speed, segment = state[:4]
         route = self.env.route
         ref = route.heading_at(position, segment)
         if slot is not None:
@@ -182,12 +204,11 @@ class _Forecast:
         """Seconds to a failure while recovering from ``state`` (step ``start`` of the forecast)."""
         config = self.config
         for i in range(start + 1, self.steps + 1):
-            segment, _ = self.env.route.project(state[0], state[3])
-            state = (state[0], state[1], state[2], segment)
+            state = _on_segment(state, self.env.route.project(state[0], state[3])[0])
             state = self.advance(state, self.recovery_steering(state, slot), -config.recovery_braking)
             if self.failed(state, i):
                 return i * config.dt
-            if state[2] <= 0.0:
+            if state[2] <= 0.0 and state[4] is None:
                 return config.horizon  # stopped on the road, clear of everything: nothing more can happen
         return config.horizon
 
@@ -217,6 +238,29 @@ class SafetyForecastValue(torch.nn.Module):
         repeats it at every step will execute it (``HybridActionSelector(persistence=...)``)."""
         config = dataclasses.replace(self.config, hold=self.config.horizon)
         return self._forecast(actions, env, config)
+
+    def progress(self, observation: torch.Tensor, actions: torch.Tensor, env=None) -> torch.Tensor:
+        """``(1, N)`` float32: metres along the route the ego makes holding each of the ``N`` actions ``(N, 2)``
+        for ``hold`` seconds (the vehicle model alone: nothing is checked for failure). What a value of safety
+        does not measure: a safe action can stop the car (``HybridActionSelector(progress_margin=...)``)."""
+        if env is None:
+            raise ValueError("SafetyForecastValue.progress needs env= (the simulator to forecast from)")
+        sim = getattr(env, "unwrapped", env)
+        forecast = _Forecast(sim, dataclasses.replace(self.config, followers=False))
+        start = sim.route.project(sim.vehicle.position, sim.route_segment)
+        steps = min(int(round(self.config.hold / self.config.dt)), forecast.steps)
+        out = []
+        for action in actions.reshape(-1, actions.shape[-1]).detach().cpu().numpy():
+            if not np.all(np.isfinite(action)):
+                out.append(-math.inf)
+                continue
+            steering, accel = action_to_controls(action)
+            state = (np.array(sim.vehicle.position, float), float(sim.vehicle.heading), float(sim.vehicle.speed),
+                     start[0], None)
+            for _ in range(steps):
+                state = forecast.advance(state, steering, accel)
+            out.append(float(sim.route.project(state[0], start[0])[1] - start[1]))
+        return torch.tensor([out], dtype=torch.float32)
 
     def recovery_value(self, env=None) -> torch.Tensor:
         """``(1, 1)``: seconds until a failure when the recovery starts now (no hold; the action is not read):

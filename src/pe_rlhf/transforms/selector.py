@@ -75,6 +75,13 @@ class HybridActionSelector(TensorDictModuleBase):
     ``strict_in_danger`` (off by default): where physics' (the reference's) own value is below the forecast's
     horizon, the mentor needs an advantage of at least 0 whatever ``epsilon_select`` says: a negative epsilon's
     slack, repeated step after step while everything is forecast to fail, ratchets the state down.
+
+    ``progress_margin`` (None by default: safety alone) [m], for a value source with ``progress(obs, acts, env=)``
+    (:class:`~pe_rlhf.physics.SafetyForecastValue`: metres along the route an action held ``hold`` seconds
+    makes): where physics' action is safe over the whole forecast, the mentor's must also make at least physics'
+    progress less ``progress_margin``, or physics drives. A time-to-failure value cannot tell a safe action
+    that stops the car from one that drives on: a random mentor, whose actions are rarely forecast to fail,
+    kept the wheel 88% of its takeover steps and its mean braking stopped the car (docs/guide/shield.md).
     """
 
     def __init__(
@@ -88,6 +95,7 @@ class HybridActionSelector(TensorDictModuleBase):
         persistence: str = "off",
         reference: str = "physics",
         strict_in_danger: bool = False,
+        progress_margin: float | None = None,
         observation_key: NestedKey = "observation",
         mentor_action_key: NestedKey = "mentor_action",
         physics_action_key: NestedKey = "physics_action",
@@ -131,6 +139,14 @@ class HybridActionSelector(TensorDictModuleBase):
             raise ValueError(f"strict_in_danger needs a value source with a horizon (the physics forecast); "
                              f"{type(q_ensemble).__name__} has none")
         self.strict_in_danger = bool(strict_in_danger)
+        if progress_margin is not None and (isinstance(progress_margin, bool)
+                                            or not isinstance(progress_margin, (int, float))
+                                            or not math.isfinite(progress_margin) or progress_margin < 0):
+            raise ValueError(f"progress_margin={progress_margin!r} must be a finite number of metres >= 0, or None")
+        if progress_margin is not None and not (hasattr(q_ensemble, "progress") and hasattr(q_ensemble, "horizon")):
+            raise ValueError(f"progress_margin needs a value source with progress (the physics forecast); "
+                             f"{type(q_ensemble).__name__} has none")
+        self.progress_margin = None if progress_margin is None else float(progress_margin)
         self.veto_patience = veto_patience
         self.imminent_failure = None if imminent_failure is None else float(imminent_failure)
         self._veto_streak: torch.Tensor | None = None
@@ -192,6 +208,8 @@ class HybridActionSelector(TensorDictModuleBase):
         advantage = (q_mentor - q_phy).mean(0)
         epsilon = self._epsilon(q_phy.mean(0))
         chosen = advantage >= epsilon
+        if self.progress_margin is not None:
+            chosen = self._progressing(chosen, obs, acts, q_phy.mean(0), env)
         if streak is None or streak.shape != chosen.shape:
             streak = torch.zeros_like(chosen, dtype=torch.long)
         if self.veto_patience > 1:
@@ -236,6 +254,18 @@ class HybridActionSelector(TensorDictModuleBase):
             action = self.q_ensemble.recovery_action(env=env).to(physics_action)
             return action.reshape(physics_action.shape), recovery.expand_as(q_phy)
         return physics_action, torch.maximum(q_phy, recovery)
+
+    def _progressing(self, chosen: torch.Tensor, obs: torch.Tensor, acts: torch.Tensor, value_phy: torch.Tensor,
+                     env) -> torch.Tensor:
+        """Where physics' action is safe over the whole forecast, the mentor keeps the wheel only if its action
+        makes at least physics' progress less ``progress_margin`` (the value source's ``progress``)."""
+        need = chosen & (value_phy >= self.q_ensemble.horizon)
+        if need.any():
+            kwargs = {"env": env} if getattr(self.q_ensemble, "needs_env", False) else {}
+            progress = self.q_ensemble.progress(obs, acts, **kwargs).mean(0)
+            n = len(acts) // 2
+            chosen = torch.where(need, progress[:n] >= progress[n:] - self.progress_margin, chosen)
+        return chosen
 
     def _epsilon(self, value_phy: torch.Tensor) -> torch.Tensor:
         """``epsilon_select`` per row; with ``strict_in_danger``, no slack (at least 0) where physics' own value
