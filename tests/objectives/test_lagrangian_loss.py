@@ -373,3 +373,33 @@ def test_ppo_lag_large_lambda_moves_the_policy_to_lower_cost():
 
     assert weighted_action_shift(0.0) > 0.03
     assert weighted_action_shift(5.0) < -0.03
+
+
+class ConstantCostQ(nn.Module):
+    """``Q_c(s, a) = b`` (one parameter): copies of it hold distinct values when their ``b`` differ."""
+
+    def __init__(self):
+        super().__init__()
+        self.bias = nn.Parameter(torch.zeros(1))
+
+    def forward(self, observation, action):
+        return self.bias.expand(*observation.shape[:-1], 1)
+
+
+@pytest.mark.parametrize("aggregate, picked", [("max", 3.0), ("min", 1.0), ("mean", 2.0)])
+def test_sac_lag_cost_target_aggregates_distinct_target_copies(aggregate, picked):
+    """Issue 45, case 10: target cost critics holding different values (1 and 3); the TD target takes the one
+    ``cost_aggregate`` names (``max``, the default: pessimistic about cost), derived by hand."""
+    gamma = 0.9
+    torch.manual_seed(0)
+    loss = SACLagLoss(make_actor(OBS, ACT, HIDDEN), make_qvalue(OBS, ACT, HIDDEN),
+                      TensorDictModule(ConstantCostQ(), ["observation", "action"], ["state_action_value"]),
+                      loss_function="l2", cost_aggregate=aggregate)
+    loss.make_value_estimator(gamma=gamma)
+    for value in loss.target_cost_qvalue_network_params.values(True, True):
+        value.data.copy_(torch.tensor([[1.0], [3.0]]).reshape(value.shape))
+    batch = sac_batch()
+    cost = batch["next", "cost"].squeeze(-1)
+    target = cost + gamma * picked  # the online copies are 0: each one's squared error is target ** 2
+    expected = 2 * (target ** 2).mean()
+    torch.testing.assert_close(loss.cost_qvalue_loss(batch), expected)
