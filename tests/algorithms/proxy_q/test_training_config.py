@@ -145,7 +145,7 @@ def test_smoke_profile_is_tiny():
     cfg = load_config(overrides=["profile=smoke"])
     assert cfg.collector.total_frames <= 500 and cfg.collector.warmup_steps <= 100
     assert list(cfg.loss.hidden) == [32, 32] and list(cfg.selector.hidden) == [32, 32]
-    assert cfg.eval.episodes == 1 and cfg.eval.video  # the smoke run checks the GIF is written
+    assert cfg.eval.episodes == 1 and not cfg.eval.video  # filming is ~45% of a smoke run; its tests ask for it
     assert driving_config(cfg).horizon == 100
 
 
