@@ -45,14 +45,8 @@ from pe_rlhf.algorithms.baselines.config_schema import (
     SacRsConfig,
 )
 from pe_rlhf.algorithms.baselines.imitation_schema import BCConfig, CQLConfig, GailConfig, HGDaggerConfig, IWRConfig
-from pe_rlhf.runtime.config import (
-    DEFAULTS_LIST_KEY,
-    RECIPES_ENV_VAR,
-    check_env,
-    check_mentor_kwargs,
-    check_recorded_algorithm,
-    read_config_file,
-)
+from pe_rlhf.runtime.config import (DEFAULTS_LIST_KEY, RECIPES_ENV_VAR, check_env, check_mentor_kwargs,
+                                    check_recorded_algorithm, read_config_file)
 from pe_rlhf.runtime.config_compose import RecipeSchema, check_overrides, compose_file, leaf_keys
 from pe_rlhf.runtime.config_rules import ConfigError, invalid_value
 from pe_rlhf.runtime.config_schema import OPEN_GROUPS  # free-form groups, checked by name in validate_baseline_config

@@ -30,17 +30,8 @@ from pe_rlhf.algorithms.baselines.config_schema import (
     PpoLossConfig,
     PpoOptimConfig,
 )
-from pe_rlhf.runtime.config_rules import (
-    SPLITS,
-    rule_choice,
-    rule_hidden,
-    rule_int,
-    rule_mentor_name,
-    rule_number,
-    rule_optional,
-    rule_string,
-    rule_target_entropy,
-)
+from pe_rlhf.runtime.config_rules import (SPLITS, rule_choice, rule_hidden, rule_int, rule_mentor_name, rule_number,
+                                          rule_optional, rule_string, rule_target_entropy)
 from pe_rlhf.runtime.config_schema import LoggerConfig, knob, open_group
 
 

@@ -26,14 +26,8 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
-from pe_rlhf.runtime.config import (
-    DEFAULTS_LIST_KEY,
-    RECIPES_ENV_VAR,
-    check_env,
-    check_mentor_kwargs,
-    check_recorded_algorithm,
-    read_config_file,
-)
+from pe_rlhf.runtime.config import (DEFAULTS_LIST_KEY, RECIPES_ENV_VAR, check_env, check_mentor_kwargs,
+                                    check_recorded_algorithm, read_config_file)
 from pe_rlhf.runtime.config_compose import check_overrides, compose_file, leaf_keys, override_key
 from pe_rlhf.runtime.config_rules import ConfigError, invalid_value
 from pe_rlhf.runtime.config_schema import OPEN_GROUPS

@@ -25,19 +25,9 @@ from pe_rlhf.modules.precision import PRECISIONS
 from pe_rlhf.objectives.perlhf import FAILURE_TARGETS
 from pe_rlhf.physics.safety import RECOVERIES
 from pe_rlhf.runtime.config_compose import RecipeSchema
-from pe_rlhf.runtime.config_rules import (
-    SPLITS,
-    Rule,
-    rule_bool,
-    rule_choice,
-    rule_hidden,
-    rule_int,
-    rule_mentor_name,
-    rule_number,
-    rule_optional,
-    rule_string,
-    rule_target_entropy,
-)
+from pe_rlhf.runtime.config_rules import (SPLITS, Rule, rule_bool, rule_choice, rule_hidden, rule_int,
+                                          rule_mentor_name, rule_number, rule_optional, rule_string,
+                                          rule_target_entropy)
 from pe_rlhf.runtime.config_schema import ActorSelectionConfig, LoggerConfig, knob, open_group
 from pe_rlhf.algorithms.proxy_q.config_profiles import PROFILES
 
