@@ -78,7 +78,7 @@ def load_recipe_script(name: str, recipes_dir: str | Path | None = None):
                                     "checkout or set $PE_RLHF_RECIPES")
         recipes_dir = config.parent.parent
     path = Path(recipes_dir) / name / "train.py"
-    spec = importlib.util.spec_from_file_location(f"pe_rlhf_recipe_{name}", path)
+    spec = importlib.util.spec_from_file_location("train", path)  # the name Hydra's --help shows, as when run
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
