@@ -51,7 +51,8 @@ class Learner:
     A learner has ``name`` (the progress bar's label), ``env_config`` (its :class:`~pe_rlhf.envs.DrivingConfig`),
     ``actor`` (evaluated deterministically, saved as ``actor.safetensors``), ``progress`` (frames, or updates offline: the
     step of rows and checkpoints), and ``batches()`` (the work, one item per ``learn``; it stops when the run is
-    complete), ``learn(batch)`` (returns the batch's row of metrics), ``checkpoint_objects(checkpoint=None)``
+    complete), ``learn(batch)`` (returns the batch's row of metrics; only :meth:`Run.train` calls it, a recipe that
+    owns its loop calls its learner's own pieces), ``checkpoint_objects(checkpoint=None)``
     (``modules``, ``optimizers`` and ``replay_buffers`` to save, or to load ``checkpoint`` into),
     ``load_state_dict(state)`` (``state["step"]`` is its progress) and ``summary(out_dir)`` (what
     ``final_eval.json`` adds to the final evaluation: ``algorithm``, ``training`` totals, ...). With ``timers``

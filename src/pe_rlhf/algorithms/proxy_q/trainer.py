@@ -98,8 +98,11 @@ RESUME_REFUSED = {
 
 
 class ProxyQLearner(Learner):
-    """PE-RLHF, HACO and HAIM-DRL as a :class:`~pe_rlhf.runtime.run.Learner`: its objects, and the work done
-    on each batch, collected or replayed from the journal on ``--resume`` (:mod:`pe_rlhf.runtime.journal`)."""
+    """PE-RLHF, HACO, HAIM-DRL and PVP as a :class:`~pe_rlhf.runtime.run.Learner`: its objects, and the pieces of the
+    work on each batch, collected or replayed from the journal on ``--resume`` (:mod:`pe_rlhf.runtime.journal`).
+    It has no ``learn``: the loop is ``recipes/pe_rlhf/train.py``'s (:meth:`store`, the updater's ``notify_frames``,
+    :meth:`row`), which calls :class:`~pe_rlhf.runtime.run.Run`'s ``begin``/``after_batch``/``finish``, not
+    ``Run.train``."""
 
     def __init__(self, cfg, logger, checkpoint_dir: Path | None, update_threads: int):
         from pe_rlhf.runtime.config import driving_config
