@@ -327,7 +327,7 @@ class Run:
             if self.selection.step != self.progress:
                 actor = self.selection.actor
                 final = self.evaluate(actor)
-            final["last_actor"] = {k: v for k, v in last.items() if k not in ("episodes_detail", "env_config")}
+            final["last_actor"] = {k: v for k, v in last.items() if k != "env_config"}  # scene by scene too
             final["actor_selection"] = self.selection.summary()
         final.update(self.learner.summary(out_dir))
         if self.seconds:
