@@ -30,7 +30,7 @@ def time_backend(backend: str, workers: int, frames: int, frames_per_batch: int,
     cfg = load_config(overrides=[f"profile={profile}", f"collector.backend={backend}",
                                  f"collector.num_workers={1 if backend == 'single' else workers}",
                                  f"collector.total_frames={frames}", f"collector.frames_per_batch={frames_per_batch}",
-                                 "collector.warmup_steps=1", "collector.learning_starts=0"])
+                                 "collector.warmup_steps=1"])
     started = time.perf_counter()
     value_source = builders.build_value_source(cfg)
     env, _ = builders.build_local_env(cfg, driving_config(cfg), value_source)

@@ -96,7 +96,7 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=10000)
     parser.add_argument("--fits", nargs="+", default=["3000:0.005", "3000:0.05"], metavar="STEPS:TAU")
     parser.add_argument("--lanes", action="store_true", help="env.lane_features=true")
-    parser.add_argument("--physics-stop", action="store_true", help="physics.stop_for_obstacles=true")
+    parser.add_argument("--physics-stop", action="store_true", help="physics.obstacles=stop (IDM brakes for obstacles)")
     parser.add_argument("--epsilon", type=float, default=0.5)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--json", default=None)

@@ -51,8 +51,7 @@ def run_mode(mode: str, args) -> dict:
     cfg = load_config(overrides=[
         f"profile={args.profile}", "mentor.name=professional", f"collector.realtime_hz={args.hz}",
         f"optim.async_updates={MODES[mode]}", f"collector.total_frames={args.warmup + online}",
-        f"collector.warmup_steps={args.warmup}", f"collector.learning_starts={args.warmup}",
-        f"selector.warmup_fit_steps={args.fit_steps}", "eval.every_frames=0", "eval.episodes=1",
+        f"collector.warmup_steps={args.warmup}", "eval.every_frames=0", "eval.episodes=1",
         "checkpoint.every_frames=0", f"seed={args.seed}"])
     envs = []
     build_train_env = builders.build_train_env
@@ -92,7 +91,6 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--seconds", type=float, default=60.0, help="online collection time per mode at --hz")
     parser.add_argument("--hz", type=float, default=10.0)
     parser.add_argument("--warmup", type=int, default=100, help="warm-up frames (mentor drives; not measured)")
-    parser.add_argument("--fit-steps", type=int, default=20, help="Q-ensemble fit steps after the warm-up")
     parser.add_argument("--profile", default="cpu", help="recipe profile: batch, networks, updates per batch")
     parser.add_argument("--modes", default="async,sync")
     parser.add_argument("--seed", type=int, default=0)

@@ -61,7 +61,7 @@ def run_once(setting: str, frames: int, warmup: int, timeout: float, seed: int =
     env.update(env_vars, SDL_VIDEODRIVER="dummy")
     command = [sys.executable, str(ROOT / "recipes" / "pe_rlhf" / "train.py"), "profile=cpu", f"seed={seed}",
                f"collector.total_frames={frames}", f"collector.warmup_steps={warmup}", "eval.every_frames=0",
-               "eval.episodes=1", "checkpoint.every_frames=0", "selector.warmup_fit_steps=1", *overrides,
+               "eval.episodes=1", "checkpoint.every_frames=0", *overrides,
                "--out", str(out / "run")]
     started = time.perf_counter()
     try:

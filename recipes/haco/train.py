@@ -4,7 +4,7 @@
     python recipes/haco/train.py --resume DIR      # continue a killed run from its last checkpoint
     python recipes/haco/train.py profile=smoke --cfg job   # print the composed config, run nothing
 
-The PE-RLHF recipe (``recipes/pe_rlhf``) with ``physics.enabled=false selector.enabled=false``
+The PE-RLHF recipe (``recipes/pe_rlhf``) with ``physics.enabled=false``
 (``config.yaml`` beside this script, a Hydra config over the PE-RLHF recipe's structured config):
 :class:`~pe_rlhf.transforms.InterventionTransform` without physics or selector, and the same
 :class:`~pe_rlhf.objectives.PERLHFLoss`. The ablation the paper compares PE-RLHF against. A bad value prints one line

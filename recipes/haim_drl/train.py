@@ -4,11 +4,11 @@
     python recipes/haim_drl/train.py --resume DIR      # continue a killed run from its last checkpoint
     python recipes/haim_drl/train.py profile=smoke --cfg job   # print the composed config, run nothing
 
-The PE-RLHF recipe (``recipes/pe_rlhf``) with ``physics.enabled=false selector.enabled=false
+The PE-RLHF recipe (``recipes/pe_rlhf``) with ``physics.enabled=false
 disturbance.enabled=true`` (``config.yaml`` beside this script, a Hydra config over the PE-RLHF recipe's
 structured config): the takeover transform without physics or selector,
 :class:`~pe_rlhf.transforms.TrafficDisturbanceCost` after it, and
-``PERLHFLoss`` with a disturbance critic (``loss.disturbance_weight``, ``loss.num_disturbance_qvalue_nets``).
+``PERLHFLoss`` with a disturbance critic (``disturbance.weight``, ``disturbance.num_qvalue_nets``).
 A bad value prints one line ``error: ...`` and exits 2; ``PE_RLHF_DEBUG=1`` shows the traceback. The training loop is
 ``recipes/pe_rlhf/train.py``'s ``train``, run over this folder's config.
 """

@@ -4,7 +4,7 @@
     python recipes/pvp/train.py --resume DIR      # continue a killed run from its last checkpoint
     python recipes/pvp/train.py profile=smoke --cfg job   # print the composed config, run nothing
 
-The PE-RLHF recipe (``recipes/pe_rlhf``) with ``physics.enabled=false selector.enabled=false
+The PE-RLHF recipe (``recipes/pe_rlhf``) with ``physics.enabled=false
 loss.objective=proxy_value replay_buffer.takeover_share=0.5`` (``config.yaml`` beside this script):
 :class:`~pe_rlhf.transforms.InterventionTransform` without physics or selector, and
 :class:`~pe_rlhf.objectives.ProxyValueLoss` with a deterministic actor. A bad value prints one line

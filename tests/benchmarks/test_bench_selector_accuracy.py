@@ -39,7 +39,7 @@ def test_selector_accuracy_on_a_smoke_run(tmp_path):
 def test_haco_run_is_refused(tmp_path):
     run = tmp_path / "haco"
     load_pe_rlhf_recipe().main(
-        ["profile=smoke", "eval.video=false", "physics.enabled=false", "selector.enabled=false", "--out", str(run)])
+        ["profile=smoke", "eval.video=false", "physics.enabled=false", "--out", str(run)])
     bench = load_script("benchmarks/selector_accuracy.py")
     with pytest.raises(SystemExit, match="no ensemble"):
         bench.main([str(run), "--max-states", "1"])

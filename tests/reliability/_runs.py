@@ -21,7 +21,7 @@ TIMING = ("env_seconds", "update_seconds")  # wall-clock bookkeeping: differs be
 # mid-takeover resume fixture left its takeover and the synced-copy test compared a CUDA run with a CPU one).
 TINY = ["profile=smoke", "optim.device=cpu", "env.horizon=50", "collector.frames_per_batch=25",
         "collector.warmup_steps=50",
-        "collector.learning_starts=25", "optim.updates_per_batch=2", "selector.warmup_fit_steps=10",
+        "optim.updates_per_batch=2",
         "eval.every_frames=0", "eval.episodes=1", "eval.video=false", "checkpoint.every_frames=100",
         "checkpoint.keep=2"]
 

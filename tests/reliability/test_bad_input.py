@@ -69,7 +69,7 @@ def finished_run(tmp_path_factory):
 
     out = tmp_path_factory.mktemp("bad_input") / "run"
     with torch_threads(1):
-        train(out, "selector.enabled=false", "physics.enabled=false", "collector.warmup_steps=0",
+        train(out, "physics.enabled=false", "collector.warmup_steps=0",
               "collector.total_frames=50", "checkpoint.every_frames=50")
     return out
 

@@ -24,7 +24,7 @@ pytestmark = [pytest.mark.usefixtures("one_thread"), pytest.mark.filterwarnings(
 
 MID, END = 75, 150
 COMMON = ["env.horizon=60", f"checkpoint.every_frames={MID}", "checkpoint.keep=3"]
-PATIENT_FORECAST = ["selector.value=forecast", "selector.veto_patience=3", "selector.imminent_failure=0.3"]
+FORECAST = ["selector.value=forecast"]
 
 
 def _ckpt(run: Path, step: int) -> Path:
@@ -51,13 +51,12 @@ def _metric_rows(run: Path) -> list[dict[str, str]]:
     return [{names[i]: row.split(",")[i] for i in keep} for row in rows]
 
 
-@pytest.mark.parametrize("epsilon, in_a_veto_streak", [(-0.5, False), (0.5, True)], ids=["shipped", "vetoes"])
-def test_resume_mid_takeover_matches_the_run_that_went_on(tmp_path, epsilon, in_a_veto_streak):
+@pytest.mark.parametrize("epsilon", [-0.5, 0.5], ids=["shipped", "vetoes"])
+def test_resume_mid_takeover_matches_the_run_that_went_on(tmp_path, epsilon):
     original = tmp_path / "original"
-    train(original, f"collector.total_frames={END}", *COMMON, *PATIENT_FORECAST, f"selector.epsilon_select={epsilon}")
+    train(original, f"collector.total_frames={END}", *COMMON, *FORECAST, f"selector.epsilon_select={epsilon}")
     saved = json.loads((_ckpt(original, MID) / "state.json").read_text())["collection"]
     assert len(saved["env"]["actions"]) == 15 and saved["takeover"]["in_takeover"]  # mid-episode, mid-takeover
-    assert (saved["takeover"]["selector"][0] > 0) == in_a_veto_streak
 
     resumed = _reduce_to_checkpoint(original, tmp_path / "resumed", MID)
     train(resumed, f"collector.total_frames={END}", resume=True)

@@ -133,7 +133,7 @@ def test_training_run_survives_a_closed_window_and_checkpoints_at_once(tmp_path,
     monkeypatch.setattr(HumanMentor, "decide", decide)
     out = tmp_path / "run"
     final = train(out, "mentor.name=human", "mentor.kwargs.fps=0", "collector.realtime_hz=0",
-                  "optim.async_updates=false", "selector.enabled=false", "physics.enabled=false",
+                  "optim.async_updates=false", "physics.enabled=false",
                   "collector.warmup_steps=0", "collector.total_frames=150", "checkpoint.every_frames=1000")
     assert final["training"]["frames"] == 150 and len(seen) == 150
     ckpt = out / "checkpoints" / "ckpt_000000075"

@@ -8,10 +8,8 @@ returns:
 - ``loss_proxy``: on takeover rows only (``I = 1``), the executed action is labelled ``+B`` and the agent's
   proposal ``-B``, ``B = q_value_bound``:
   ``sum_k mean_{I=1} [(Q_k(s, a_exec) - B)^2 + (Q_k(s, a_AV) - (-B))^2]``; 0 on a batch without a takeover.
-  During a PE-RLHF takeover the executed action is the hybrid's (mentor or physics): the loss need not know which.
-  With ``physics_labels=False`` it does: takeover rows where physics was executed (``mentor_selected`` false) get
-  no label and no behaviour cloning, only TD (physics keeps the executed action safe, but its braking is not
-  what the agent should be taught to prefer).
+  During a PE-RLHF takeover the executed action is the hybrid's (mentor or physics): the loss need not know which
+  (labelling only the mentor's rows was measured and lost: docs/experiments/learner.md).
 - ``loss_td``: zero-reward TD on every row at the executed action, twin critics, TD3's target
   ``y = gamma * (1 - terminated) * min_k Q'_k(s', clip(pi'(s') + clip(N(0, sigma), -c, c), -1, 1))``,
   ``sum_k mean (Q_k(s, a_exec) - y)^2``. With ``mask_td_at_takeover_start`` the rows where a takeover starts
@@ -20,9 +18,7 @@ returns:
   parameters detached), plus ``bc_weight * mean_{I=1} ||pi(s) - a_exec||^2`` (PVP4Real's behaviour cloning on
   takeover rows). The actor's term is computed on every ``policy_delay``-th call (TD3's delay: calls
   ``policy_delay``, ``2 * policy_delay``, ...); on the calls in between ``loss_actor`` is a constant 0 and the
-  actor is not evaluated. The call count is a buffer, saved
-  with the module's state. With ``preactivation_penalty`` the actor's term adds that weight times the mean squared
-  pre-tanh output (``action_preactivation``, written by :func:`pe_rlhf.modules.make_deterministic_actor`).
+  actor is not evaluated. The call count is a buffer, saved with the module's state.
 - diagnostics (detached): ``td_loss``, ``proxy_loss``, ``bc_loss``, ``q_behavior`` (mean ``Q`` at the executed
   action on takeover rows), ``q_agent`` (at the agent's proposal on takeover rows), ``q_free`` (at the executed
   action on rows without a takeover), ``td_error`` (mean absolute), ``intervention_rate``, ``actor_saturation``
@@ -31,8 +27,8 @@ returns:
 
 Default keys (``set_keys`` renames): root ``observation`` (through the networks' in_keys) and ``action`` = the
 agent's proposal ``a_AV`` float ``(..., A)``; under ``next``: ``behavior_action`` ``(..., A)``, ``intervention`` and
-``intervention_start`` bool ``(..., 1)``, ``terminated`` bool ``(..., 1)`` and ``observation``; with
-``physics_labels=False`` also ``mentor_selected`` bool ``(..., 1)``. The reward is never read. Any batch shape (flattened to one dim); the input tensordict is read, never written.
+``intervention_start`` bool ``(..., 1)``, ``terminated`` bool ``(..., 1)`` and ``observation``. The reward is never
+read. Any batch shape (flattened to one dim); the input tensordict is read, never written.
 """
 
 from __future__ import annotations
@@ -67,17 +63,12 @@ class ProxyValueLoss(KeyedLoss, LossModule):
         policy_delay: the actor is updated every ``policy_delay``-th call (TD3: 2).
         bc_weight: weight of behaviour cloning toward the executed action on takeover rows (0: off).
         mask_td_at_takeover_start: leave takeover-start rows out of the TD term (PVP's mask).
-        physics_labels: False: takeover rows whose executed action was physics' get TD only (module docstring).
-        preactivation_penalty: weight of ``mean ||u||^2`` on the actor's pre-tanh output ``u`` (read from
-            ``action_preactivation`` when the actor writes it): keeps the tanh out of its flat tails, where a
-            saturated actor (full brake, say) gets no gradient back (0: off).
     """
 
     @dataclass
     class _AcceptedKeys(TakeoverKeys):
         """Keys the loss reads; ``set_keys(action=..., behavior_action=...)`` renames them."""
 
-        mentor_selected: NestedKey = ("next", "mentor_selected")
         state_action_value: NestedKey = "state_action_value"
         terminated: NestedKey = "terminated"
 
@@ -95,12 +86,10 @@ class ProxyValueLoss(KeyedLoss, LossModule):
     def __init__(self, actor_network: TensorDictModule, qvalue_network: TensorDictModule, *,
                  q_value_bound: float = 1.0, gamma: float = 0.99, num_qvalue_nets: int = 2,
                  target_noise: float = 0.2, target_noise_clip: float = 0.5, policy_delay: int = 2,
-                 bc_weight: float = 0.0, mask_td_at_takeover_start: bool = False,
-                 physics_labels: bool = True, preactivation_penalty: float = 0.0) -> None:
+                 bc_weight: float = 0.0, mask_td_at_takeover_start: bool = False) -> None:
         super().__init__()
         for name, value, low in (("q_value_bound", q_value_bound, 0.0), ("target_noise", target_noise, 0.0),
-                                 ("target_noise_clip", target_noise_clip, 0.0), ("bc_weight", bc_weight, 0.0),
-                                 ("preactivation_penalty", preactivation_penalty, 0.0)):
+                                 ("target_noise_clip", target_noise_clip, 0.0), ("bc_weight", bc_weight, 0.0)):
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) \
                     or value < low or (name == "q_value_bound" and value == 0):
                 raise ValueError(f"ProxyValueLoss {name}={value!r} is invalid: a finite number "
@@ -116,8 +105,6 @@ class ProxyValueLoss(KeyedLoss, LossModule):
         self.target_noise, self.target_noise_clip = float(target_noise), float(target_noise_clip)
         self.policy_delay, self.bc_weight = policy_delay, float(bc_weight)
         self.mask_td_at_takeover_start = bool(mask_td_at_takeover_start)
-        self.physics_labels = bool(physics_labels)
-        self.preactivation_penalty = float(preactivation_penalty)
         self.register_buffer("calls", torch.zeros((), dtype=torch.long))
         self._vmap_q = _vmap_func(self.qvalue_network, (None, 0))
 
@@ -125,7 +112,7 @@ class ProxyValueLoss(KeyedLoss, LossModule):
     def _loss_in_keys(self) -> list[NestedKey]:
         keys = self.tensor_keys
         states = self.state_keys
-        flags = [keys.intervention, keys.intervention_start] + ([] if self.physics_labels else [keys.mentor_selected])
+        flags = [keys.intervention, keys.intervention_start]
         return [keys.action, keys.behavior_action, *flags, *next_keys([keys.terminated]), *self.actor_network.in_keys,
                 *states, *next_keys(self.actor_network.in_keys), *next_keys(states)]
 
@@ -141,11 +128,6 @@ class ProxyValueLoss(KeyedLoss, LossModule):
         return "action" if "action" in out else out[0]
 
     @property
-    def preactivation_key(self) -> NestedKey | None:
-        """Where the actor writes its pre-tanh output (:func:`pe_rlhf.modules.make_deterministic_actor`), or None."""
-        return "action_preactivation" if "action_preactivation" in self.actor_network.out_keys else None
-
-    @property
     def state_keys(self) -> list[NestedKey]:
         """The critics' inputs other than the action (the loss sets the action it values)."""
         return [k for k in self.qvalue_network.in_keys if k != self.policy_action_key]
@@ -156,16 +138,11 @@ class ProxyValueLoss(KeyedLoss, LossModule):
         td.set(self.policy_action_key, action)
         return self._vmap_q(td, params).get(self.tensor_keys.state_action_value).squeeze(-1)
 
-    def _act(self, params, tensordict: TensorDictBase, preactivation: bool = False):
-        """The deterministic actor's action under ``params`` (the input is not written); with ``preactivation``,
-        ``(action, pre-tanh output or None)``."""
+    def _act(self, params, tensordict: TensorDictBase) -> torch.Tensor:
+        """The deterministic actor's action under ``params`` (the input is not written)."""
         td = tensordict.select(*self.actor_network.in_keys, strict=False)
         with params.to_module(self.actor_network):
-            out = self.actor_network(td)
-        if not preactivation:
-            return out.get(self.policy_action_key)
-        key = self.preactivation_key
-        return out.get(self.policy_action_key), (out.get(key) if key is not None else None)
+            return self.actor_network(td).get(self.policy_action_key)
 
     def td_target(self, tensordict: TensorDictBase) -> torch.Tensor:
         """``(rows,)``: ``gamma * (1 - terminated) * min_k Q'_k(s', smoothed pi'(s'))``, zero reward, no grad."""
@@ -201,26 +178,20 @@ class ProxyValueLoss(KeyedLoss, LossModule):
         td_error = (q_exec - target)[:, td_rows]
         loss_td = td_error.pow(2).mean(-1).sum(0) if td_rows.any() else q_all.new_zeros(())
         zero = q_all.new_zeros(())
-        labelled = takeover  # the takeover rows that carry the +B / -B labels (and behaviour cloning)
-        if not self.physics_labels:
-            labelled = takeover & tensordict.get(keys.mentor_selected).reshape(-1).bool()
-        if labelled.any():
-            bound, among = self.q_value_bound, labelled[takeover]  # q_agent holds the takeover rows only
-            loss_proxy = ((q_exec[:, labelled] - bound).pow(2).mean(-1)
-                          + (q_agent[:, among] + bound).pow(2).mean(-1)).sum(0)
+        if takeover.any():  # q_agent holds the takeover rows only
+            bound = self.q_value_bound
+            loss_proxy = ((q_exec[:, takeover] - bound).pow(2).mean(-1) + (q_agent + bound).pow(2).mean(-1)).sum(0)
         else:
             loss_proxy = zero
 
         loss_actor, loss_bc, saturation = zero, zero, zero
         if (int(self.calls) + 1) % self.policy_delay == 0:  # after every policy_delay-th critic step
-            action, pre = self._act(self.actor_network_params, tensordict, preactivation=True)
+            action = self._act(self.actor_network_params, tensordict)
             q_first = self._q(self.qvalue_network_params.detach()[:1], tensordict, action)[0]
             loss_actor = -q_first.mean()
             saturation = (action.detach().abs() > 0.99).float().mean()
-            if self.preactivation_penalty > 0 and pre is not None:
-                loss_actor = loss_actor + self.preactivation_penalty * pre.pow(2).sum(-1).mean()
-            if self.bc_weight > 0 and labelled.any():
-                loss_bc = (action[labelled] - behavior[labelled]).pow(2).sum(-1).mean()
+            if self.bc_weight > 0 and takeover.any():
+                loss_bc = (action[takeover] - behavior[takeover]).pow(2).sum(-1).mean()
                 loss_actor = loss_actor + self.bc_weight * loss_bc
         self.calls += 1
 

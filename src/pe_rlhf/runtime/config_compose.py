@@ -58,13 +58,23 @@ _LOCK = threading.RLock()  # Hydra's compose state and the file's ConfigStore en
 @dataclass(frozen=True, eq=False)
 class RecipeSchema:
     """A recipe family's structured config as Hydra composes it: ``name`` in the ConfigStore, ``defaults`` (the
-    schema's values as a new plain dict each call), ``profiles`` (``{profile: values}``, the ``profile`` group)
-    and ``open_groups`` (free-form groups, checked by name after composition)."""
+    schema's values as a new plain dict each call), ``profiles`` (``{profile: values}``, the ``profile`` group),
+    ``open_groups`` (free-form groups, checked by name after composition) and ``variant_groups`` (groups whose
+    settings depend on one of their fields, e.g. the loss's on ``loss.objective``: empty and open in Hydra's node,
+    so that the recipe file brings its variant's settings and nothing else; the family completes and checks them
+    after composition)."""
 
     name: str
     defaults: Callable[[], dict[str, Any]]
     profiles: Mapping[str, Mapping[str, Any]]
     open_groups: tuple[str, ...] = OPEN_GROUPS
+    variant_groups: tuple[str, ...] = ()
+
+    def node_values(self) -> dict[str, Any]:
+        """The defaults Hydra composes over: :attr:`defaults` with each variant group empty."""
+        values = self.defaults()
+        values.update({group: {} for group in self.variant_groups})
+        return values
 
 
 _STORED: set[str] = set()  # the schemas registered in this process (they are constants)
@@ -74,7 +84,7 @@ _PROFILES_OF: str | None = None  # the schema whose profiles the profile group h
 def schema_node(schema: RecipeSchema) -> DictConfig:
     """The schema's defaults as a DictConfig: closed groups (an unknown key fails) but its open groups; not
     typed (the rules check every value after composition)."""
-    cfg = OmegaConf.create(schema.defaults())
+    cfg = OmegaConf.create(schema.node_values())
     _close(cfg, schema)
     return cfg
 
@@ -87,7 +97,7 @@ def store_recipe_configs(schema: RecipeSchema) -> None:
         store = ConfigStore.instance()
         if schema.name not in _STORED:
             _STORED.add(schema.name)
-            node = OmegaConf.create({"defaults": HYDRA_DEFAULTS_LIST, "hydra": HYDRA_SETTINGS, **schema.defaults()})
+            node = OmegaConf.create({"defaults": HYDRA_DEFAULTS_LIST, "hydra": HYDRA_SETTINGS, **schema.node_values()})
             _close(node, schema)
             store.store(name=schema.name, node=node)
         if _PROFILES_OF != schema.name:
@@ -99,7 +109,7 @@ def store_recipe_configs(schema: RecipeSchema) -> None:
 
 def _close(cfg: DictConfig, schema: RecipeSchema) -> None:
     OmegaConf.set_struct(cfg, True)
-    for group in schema.open_groups:
+    for group in (*schema.open_groups, *schema.variant_groups):
         node = OmegaConf.select(cfg, group)
         if node is not None:
             OmegaConf.set_struct(node, False)

@@ -89,8 +89,7 @@ def test_bad_warmup_policy_fails_naming_the_field(sac_run, tmp_path):
     with pytest.raises(ConfigError, match=r"reads \d+-float observations"):
         builders.build_warmup_driver(_cfg(f"collector.warmup_policy={sac_run}", "env.lane_features=false"))
     with pytest.raises(ConfigError, match="collector.warmup_policy"):
-        _cfg(f"collector.warmup_policy={sac_run}", "collector.warmup_steps=0", "selector.enabled=false",
-             "physics.enabled=false")
+        _cfg(f"collector.warmup_policy={sac_run}", "collector.warmup_steps=0", "physics.enabled=false")
     with pytest.raises(ConfigError, match="collector.warmup_policy"):
         _cfg("collector.warmup_policy=3")
     unfinished = tmp_path / "unfinished"

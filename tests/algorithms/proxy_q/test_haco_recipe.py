@@ -35,7 +35,7 @@ def test_smoke_run_executes_only_the_mentor_in_takeovers(tmp_path):
     final = load_script("recipes/haco/train.py", "haco_recipe").main(["profile=smoke", "eval.video=false",
                                                                       "--out", str(tmp_path)])
     saved = load_config(tmp_path / "config.yaml", apply_profile=False)
-    assert not saved.physics.enabled and not saved.selector.enabled
+    assert not saved.physics.enabled
     written = json.loads((tmp_path / "final_eval.json").read_text())
     assert written["success_rate"] == final["success_rate"]
     assert (tmp_path / "actor.safetensors").is_file()

@@ -51,7 +51,7 @@ def test_smoke_run_writes_every_output(tmp_path):
                  "test_episode.gif"):
         assert (tmp_path / name).exists(), name
     saved = load_config(tmp_path / "config.yaml", apply_profile=False)
-    assert saved.disturbance.enabled and not saved.physics.enabled and not saved.selector.enabled
+    assert saved.disturbance.enabled and not saved.physics.enabled
     with open(tmp_path / "metrics.csv") as f:
         rows = list(csv.DictReader(f))
     assert len(rows) == 300 // 50

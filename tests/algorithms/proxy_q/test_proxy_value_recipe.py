@@ -26,13 +26,12 @@ PVP_DIR = Path(__file__).resolve().parents[3] / "recipes" / "pvp"
 
 def test_proxy_value_objective_builds_a_deterministic_actor_its_loss_and_two_optimizers():
     cfg = load_config(overrides=["profile=smoke", "loss.objective=proxy_value", "loss.layer_norm=true",
-                                 "loss.q_value_bound=2", "loss.bc_weight=0.5", "loss.policy_delay=3",
-                                 "loss.preactivation_penalty=0.01"])
+                                 "loss.q_value_bound=2", "loss.bc_weight=0.5", "loss.policy_delay=3"])
     actor = builders.build_actor(cfg)
     assert not isinstance(actor, ProbabilisticActor) and actor.out_keys == ["action", "action_preactivation"]
     loss, _ = builders.build_loss(cfg, actor)
     assert isinstance(loss, ProxyValueLoss)
-    assert (loss.q_value_bound, loss.bc_weight, loss.policy_delay, loss.preactivation_penalty) == (2.0, 0.5, 3, 0.01)
+    assert (loss.q_value_bound, loss.bc_weight, loss.policy_delay) == (2.0, 0.5, 3)
     assert any(isinstance(m, torch.nn.LayerNorm) for m in loss.qvalue_network.modules())
     assert set(builders.build_optimizers(cfg, loss)) == {"actor", "qvalue"}
     assert method_name(cfg) == "PE-RLHF"  # the physics-enhanced takeover composes with it unchanged

@@ -20,8 +20,8 @@ from pe_rlhf.algorithms.proxy_q.config_schema import PROXY_Q
 ROOT = Path(__file__).resolve().parents[3]
 
 
-@pytest.mark.parametrize("recipe, method", [("pe_rlhf", (True, True, False)), ("haco", (False, False, False)),
-                                            ("haim_drl", (False, False, True))])
+@pytest.mark.parametrize("recipe, method", [("pe_rlhf", (True, False, "paper")), ("haco", (False, False, "paper")),
+                                            ("haim_drl", (False, True, "paper")), ("pvp", (False, False, "proxy_value"))])
 def test_cfg_job_prints_the_composed_config_and_leaves_the_directory_alone(tmp_path, recipe, method):
     proc = run_recipe(recipe, "profile=smoke", "seed=3", "optim.lr=3e-4", "env.traffic_density=0.2", "--cfg", "job",
                       cwd=tmp_path)
@@ -30,7 +30,7 @@ def test_cfg_job_prints_the_composed_config_and_leaves_the_directory_alone(tmp_p
     expected = to_container(load_config(ROOT / "recipes" / recipe / "config.yaml",
                                         ["profile=smoke", "seed=3", "optim.lr=3e-4", "env.traffic_density=0.2"]))
     assert printed == expected
-    assert (printed["physics"]["enabled"], printed["selector"]["enabled"], printed["disturbance"]["enabled"]) == method
+    assert (printed["physics"]["enabled"], printed["disturbance"]["enabled"], printed["loss"]["objective"]) == method
     assert list(tmp_path.iterdir()) == []  # no outputs/, .hydra/, multirun/ or log file
 
 

@@ -12,7 +12,7 @@ from pe_rlhf.envs.config import DrivingConfig
 from pe_rlhf.runtime.config import driving_config, save_config, to_container
 from pe_rlhf.runtime.config_rules import ConfigError
 from pe_rlhf.runtime.config_schema import OPEN_GROUPS
-from pe_rlhf.algorithms.proxy_q.builders import epsilon_select, warmup_selection
+from pe_rlhf.algorithms.proxy_q.builders import ensemble_fit_steps, epsilon_select
 from pe_rlhf.algorithms.proxy_q.config import (
     PROFILES,
     RULES,
@@ -23,7 +23,7 @@ from pe_rlhf.algorithms.proxy_q.config import (
     physics_config,
     validate_config,
 )
-from pe_rlhf.algorithms.proxy_q.config_schema import RecipeConfig, defaults
+from pe_rlhf.algorithms.proxy_q.config_schema import VARIANTS, RecipeConfig, defaults, variant_defaults, variant_rules
 
 RECIPE_YAML = Path(__file__).resolve().parents[3] / "recipes" / "pe_rlhf" / "config.yaml"
 HAIM_DRL_YAML = Path(__file__).resolve().parents[3] / "recipes" / "haim_drl" / "config.yaml"
@@ -50,8 +50,7 @@ def test_defaults_load_and_validate_with_the_paper_values():
     assert set(GROUPS) <= set(cfg.keys())
     assert cfg.profile == "paper"
     assert (cfg.loss.gamma, cfg.loss.tau, cfg.optim.lr, cfg.replay_buffer.batch_size) == (0.99, 0.005, 1e-4, 1024)
-    assert (cfg.collector.learning_starts, cfg.collector.frames_per_batch, cfg.collector.warmup_steps) == (100, 100,
-                                                                                                           10000)
+    assert (cfg.collector.frames_per_batch, cfg.collector.warmup_steps) == (100, 10000)
     assert (cfg.loss.gap_coef, epsilon_select(cfg), cfg.loss.psi, cfg.loss.intervention_weight) == (
         10.0, -0.5, 1.0, 1.0)  # epsilon_select: null, the default value source's own (forecast: -0.5 s)
     assert cfg.selector.value == "forecast"
@@ -70,10 +69,44 @@ def test_recipe_yaml_is_a_hydra_config_over_the_structured_defaults():
 
 
 def test_every_field_has_a_validation_rule_its_default_passes():
-    assert set(leaves(defaults())) - set(OPEN_GROUPS) == set(RULES)
+    variant_fields = {k for k in leaves(defaults()) if k.split(".")[0] in VARIANTS}
+    assert set(leaves(defaults())) - set(OPEN_GROUPS) - variant_fields == set(RULES)
     flat = leaves(defaults())
     for field, rule in RULES.items():
         assert rule(flat[field]) is None, (field, flat[field])
+    for group, (_, variants) in VARIANTS.items():  # every variant's fields, each with a rule its default passes
+        for choice in variants:
+            values, rules = variant_defaults(group, choice), variant_rules(group, choice)
+            assert set(rules) == {f"{group}.{k}" for k in values}
+            for name, value in values.items():
+                assert rules[f"{group}.{name}"](value) is None, (group, choice, name, value)
+
+
+def test_a_variant_group_shows_its_variants_settings_and_switches_on_its_field():
+    proxy = load_config(overrides=["loss.objective=proxy_value", "loss.bc_weight=0.5"])
+    assert list(proxy.loss) == list(variant_defaults("loss", "proxy_value"))  # the paper's settings went
+    assert proxy.loss.bc_weight == 0.5 and proxy.loss.q_value_bound == 1.0
+    assert list(load_config().loss) == list(variant_defaults("loss", "paper"))
+    haim = load_config(overrides=["physics.enabled=false", "disturbance.enabled=true", "disturbance.weight=2"])
+    assert list(haim.disturbance) == list(variant_defaults("disturbance", True)) and haim.disturbance.weight == 2
+    assert list(load_config().disturbance) == ["enabled"]
+
+
+def test_a_saved_config_from_before_the_settings_were_retired_still_loads(tmp_path):
+    """A run folder's config.yaml written before issue 43 retired settings (loss.physics_labels, the selector's
+    experiment options, the physics booleans, ...) loads for evaluation and resume, each mapped or dropped."""
+    old = to_container(load_config(overrides=["loss.objective=proxy_value"]))
+    old["selector"].update(enabled=True, switch_margin=None, veto_patience=1, forecast_hold=1.0, hidden=[256, 256])
+    old["loss"].update(physics_labels=False, preactivation_penalty=0.0, gap_coef=10.0, fused_critics=True)
+    old["physics"] = {"enabled": True, "see_obstacles": False, "stop_for_obstacles": True, "use_idm": True,
+                      "use_mobil": False}
+    old["collector"].update(learning_starts=100, exploration="random")
+    path = tmp_path / "config.yaml"
+    path.write_text(OmegaConf.to_yaml(OmegaConf.create({"algorithm": "pe-rlhf", **old})))
+    cfg = load_config(path, apply_profile=False)
+    assert list(cfg.loss) == list(variant_defaults("loss", "proxy_value"))
+    assert (cfg.physics.model, cfg.physics.obstacles) == ("idm", "stop")
+    assert "enabled" not in cfg.selector and "learning_starts" not in cfg.collector
 
 
 def test_without_a_recipe_file_the_schema_defaults_are_used(monkeypatch):
@@ -113,12 +146,12 @@ def test_save_and_reload_round_trip(tmp_path):
 
 
 def test_a_saved_config_records_the_method_and_refuses_values_that_contradict_it(tmp_path):
-    haco = load_config(overrides=["profile=smoke", "physics.enabled=false", "selector.enabled=false"])
+    haco = load_config(overrides=["profile=smoke", "physics.enabled=false"])
     path = save_config(haco, tmp_path / "config.yaml", algorithm_name(haco))
     assert path.read_text().startswith("algorithm: haco\n")  # the registry name, first
     assert to_container(load_config(path, apply_profile=False)) == to_container(haco)  # read apart from the values
     with pytest.raises(ConfigError, match=r"^algorithm='haco' is invalid: the run folder's config describes 'pe-rlhf'"):
-        load_config(path, ["physics.enabled=true", "selector.enabled=true"], apply_profile=False)
+        load_config(path, ["physics.enabled=true"], apply_profile=False)
 
 
 # --------------------------------------------------------------------------- profiles and overrides
@@ -144,7 +177,7 @@ def test_quick_profile_is_make_runs_ten_minute_budget():
 def test_smoke_profile_is_tiny():
     cfg = load_config(overrides=["profile=smoke"])
     assert cfg.collector.total_frames <= 500 and cfg.collector.warmup_steps <= 100
-    assert list(cfg.loss.hidden) == [32, 32] and list(cfg.selector.hidden) == [32, 32]
+    assert list(cfg.loss.hidden) == [32, 32] and cfg.selector.num_members == 2
     assert cfg.eval.episodes == 1 and not cfg.eval.video  # filming is ~45% of a smoke run; its tests ask for it
     assert driving_config(cfg).horizon == 100
 
@@ -161,23 +194,24 @@ def test_profile_from_the_file_and_cli_override_on_top_of_profile(tmp_path):
 @pytest.mark.parametrize("name", sorted(PROFILES))
 def test_every_profile_validates_for_both_methods(name):
     validate_config(load_config(overrides=[f"profile={name}"]))
-    load_config(overrides=[f"profile={name}", "selector.enabled=false", "physics.enabled=false"])
+    load_config(overrides=[f"profile={name}", "physics.enabled=false"])
+    load_config(overrides=[f"profile={name}", "loss.objective=proxy_value"])
 
 
 def test_cli_overrides_apply():
     cfg = load_config(overrides=["optim.lr=3e-4", "mentor.name=amateur", "loss.hidden=[128,128]",
-                                 "selector.variance_threshold=2.5", "env.traffic_density=0.2",
+                                 "selector.num_members=3", "env.traffic_density=0.2",
                                  "mentor.kwargs.action_noise=0.2", "logger.out_dir=runs/x"])
     assert cfg.optim.lr == pytest.approx(3e-4)
     assert cfg.mentor.name == "amateur" and cfg.mentor.kwargs.action_noise == 0.2
-    assert list(cfg.loss.hidden) == [128, 128] and cfg.selector.variance_threshold == 2.5
+    assert list(cfg.loss.hidden) == [128, 128] and cfg.selector.num_members == 3
     assert driving_config(cfg).traffic_density == 0.2
     assert driving_config(cfg, split="test").split == "test"
     assert cfg.logger.out_dir == "runs/x"
 
 
 @pytest.mark.parametrize("override, named", [("optim.lrr=1", "optim.lrr"), ("optimizer.lr=1", "optimizer"),
-                                             ("loss.gamma.x=1", "loss.gamma.x")])
+                                             ("loss.gamma.x=1", "loss.gamma.x"), ("loss.gap_cof=5", "loss.gap_cof")])
 def test_unknown_override_key_fails_naming_it(override, named):
     with pytest.raises(ConfigError, match=named.replace(".", r"\.")):
         load_config(overrides=[override])
@@ -199,20 +233,16 @@ INVALID = [
     ("env.lanes", "7"),
     ("env.trafic_density", "0.5"),
     ("mentor.name", "expert"),
-    ("selector.warmup_selection", "sometimes"),
     ("optim.threads", "0"),
     ("mentor.seed", "1.5"),
     ("mentor.kwargs.skill", "3"),
-    ("physics.use_idm", "maybe"),
+    ("physics.model", "idm_only"),
+    ("physics.obstacles", "sometimes"),
     ("selector.epsilon_select", "nan"),
-    ("selector.variance_threshold", "-0.5"),
     ("selector.num_members", "0"),
-    ("selector.hidden", "[256,-3]"),
-    ("selector.lr", "0"),
     ("collector.total_frames", "0"),
     ("collector.frames_per_batch", "40000"),
     ("collector.warmup_steps", "50000"),
-    ("collector.learning_starts", "-5"),
     ("collector.backend", "threads"),
     ("collector.num_workers", "4"),
     ("replay_buffer.size", "0"),
@@ -228,12 +258,10 @@ INVALID = [
     ("loss.alpha_init", "0"),
     ("loss.hidden", "[]"),
     ("loss.cosine_cost", "2"),
-    ("loss.disturbance_weight", "-1"),
-    ("loss.num_disturbance_qvalue_nets", "0"),
+    ("loss.objective", "td3"),
+    ("loss.q_value_bound", "2.0"),  # the proxy-value loss's, set on the paper loss: it would do nothing
     ("disturbance.enabled", "maybe"),
-    ("disturbance.threshold", "0"),
-    ("disturbance.horizon", "-2"),
-    ("disturbance.follower_range", "nan"),
+    ("disturbance.threshold", "4"),  # the disturbance cost's, with it off: it would do nothing
     ("logger.wandb_mode", "cloud"),
     ("logger.log_every", "0"),
     ("eval.episodes", "0"),
@@ -303,11 +331,11 @@ def test_validate_rejects_hand_built_configs_with_unknown_groups():
 
 def test_method_names():
     assert method_name(load_config()) == "PE-RLHF"
-    haco = load_config(overrides=["selector.enabled=false", "physics.enabled=false"])
+    haco = load_config(overrides=["physics.enabled=false"])
     assert method_name(haco) == "HACO"
     assert method_name(load_config(overrides=["selector.num_members=1"])) == "PE-RLHF"  # w/o ensemble ablation
-    assert method_name(load_config(overrides=["selector.enabled=false", "physics.enabled=false",
-                                              "disturbance.enabled=true"])) == "HAIM-DRL"
+    assert method_name(load_config(overrides=["physics.enabled=false", "disturbance.enabled=true"])) == "HAIM-DRL"
+    assert method_name(load_config(overrides=["physics.enabled=false", "loss.objective=proxy_value"])) == "PVP"
     assert method_name(load_config(overrides=["disturbance.enabled=true"])) == "PE-RLHF+disturbance"
     assert algorithm_name(load_config(overrides=["disturbance.enabled=true"])) == "pe-rlhf"  # a PE-RLHF variant
 
@@ -315,34 +343,37 @@ def test_method_names():
 def test_haim_drl_recipe_is_haco_with_the_disturbance_cost():
     cfg = load_config(HAIM_DRL_YAML)
     assert method_name(cfg) == "HAIM-DRL"
-    changed = {k: v for k, v in leaves(to_container(cfg)).items() if leaves(defaults())[k] != v}
-    assert changed == {"physics.enabled": False, "selector.enabled": False, "disturbance.enabled": True}
+    base = leaves(defaults())
+    changed = {k: v for k, v in leaves(to_container(cfg)).items() if k in base and base[k] != v}
+    added = {k for k in leaves(to_container(cfg)) if k not in base}  # the disturbance group's settings, now on
+    assert changed == {"physics.enabled": False, "disturbance.enabled": True}
+    assert added == {f"disturbance.{k}" for k in variant_defaults("disturbance", True)} - {"disturbance.enabled"}
     assert (cfg.disturbance.threshold, cfg.disturbance.horizon) == (5.0, 3.0)  # HAIM-DRL's 5 m/s^2
-    assert (cfg.loss.disturbance_weight, cfg.loss.num_disturbance_qvalue_nets) == (1.0, 2)  # its own twin critic
-    smoke = load_config(HAIM_DRL_YAML, ["profile=smoke", "loss.disturbance_weight=0.5"])
-    assert smoke.collector.total_frames == 300 and smoke.loss.disturbance_weight == 0.5
+    assert (cfg.disturbance.weight, cfg.disturbance.num_qvalue_nets) == (1.0, 2)  # its own twin critic
+    smoke = load_config(HAIM_DRL_YAML, ["profile=smoke", "disturbance.weight=0.5"])
+    assert smoke.collector.total_frames == 300 and smoke.disturbance.weight == 0.5
     assert not load_config().disturbance.enabled  # PE-RLHF (and HACO) stay without it
 
 
-def test_selector_without_physics_is_an_error():
-    with pytest.raises(ConfigError, match=r"selector\.enabled=True .*physics\.enabled"):
-        load_config(overrides=["physics.enabled=false"])
-    with pytest.raises(ConfigError, match=r"physics\.enabled=True .*selector\.enabled"):
-        load_config(overrides=["selector.enabled=false"])
-
-
-def test_selector_needs_warmup():
+def test_a_fitted_selector_needs_a_warmup_and_its_fit_scales_with_it():
     with pytest.raises(ConfigError, match="collector.warmup_steps=0"):
-        load_config(overrides=["collector.warmup_steps=0"])
-    load_config(overrides=["collector.warmup_steps=0", "selector.enabled=false", "physics.enabled=false"])
+        load_config(overrides=["collector.warmup_steps=0", "selector.value=warmup"])
+    load_config(overrides=["collector.warmup_steps=0"])  # the forecast fits nothing
+    load_config(overrides=["collector.warmup_steps=0", "physics.enabled=false"])
+    # the paper's 3000 gradient steps after its 10K warm-up, make run's 1500 after 5K; nothing to fit for the others
+    assert ensemble_fit_steps(load_config(overrides=["selector.value=warmup"])) == 3000
+    assert ensemble_fit_steps(load_config(overrides=["selector.value=warmup", "profile=quick"])) == 1500
+    assert ensemble_fit_steps(load_config()) == ensemble_fit_steps(load_config(overrides=["selector.value=expert"])) == 0
 
 
-def test_physics_config_follows_the_switches():
-    cfg = load_config(overrides=["physics.use_mobil=false", "physics.see_obstacles=true"])
-    phy = physics_config(cfg)
-    assert (phy.use_idm, phy.use_mobil, phy.see_obstacles, phy.stop_for_obstacles) == (True, False, True, True)
-    assert physics_config(load_config()).stop_for_obstacles  # the default: brakes for obstacles
-    assert not physics_config(load_config(overrides=["physics.stop_for_obstacles=false"])).stop_for_obstacles
+@pytest.mark.parametrize("model, obstacles, expected", [
+    ("idm_mobil", "stop", (True, True, False, True)),  # the default: IDM brakes for obstacles, MOBIL ignores them
+    ("idm", "avoid", (True, False, True, True)),  # the "IDM only" ablation, seeing obstacles
+    ("mobil", "blind", (False, True, False, False)),  # the "MOBIL only" ablation, blind
+])
+def test_physics_config_follows_the_choices(model, obstacles, expected):
+    phy = physics_config(load_config(overrides=[f"physics.model={model}", f"physics.obstacles={obstacles}"]))
+    assert (phy.use_idm, phy.use_mobil, phy.see_obstacles, phy.stop_for_obstacles) == expected
 
 
 @pytest.mark.parametrize("overrides, expected", [
@@ -357,29 +388,6 @@ def test_epsilon_select_null_takes_the_value_sources_own(overrides, expected):
     assert epsilon_select(cfg) == expected
 
 
-@pytest.mark.parametrize("overrides, expected", [
-    ([], False),  # the default: the paper's warm-up, which bypasses the selector
-    (["selector.warmup_selection=auto"], True),  # the forecast needs no fit: it can judge the warm-up too
-    (["selector.warmup_selection=auto", "selector.value=expert"], True),
-    (["selector.warmup_selection=auto", "selector.value=warmup"], False),  # fitted on the warm-up: it cannot
-    (["selector.warmup_selection=auto", "collector.warmup_policy=runs/x"], False),  # a trained policy drives it
-    (["selector.warmup_selection=true"], True),
-    (["selector.warmup_selection=auto", "selector.enabled=false", "physics.enabled=false"], False),  # HACO
-])
-def test_warmup_selection_auto(overrides, expected):
-    assert warmup_selection(load_config(overrides=overrides)) is expected
-
-
-@pytest.mark.parametrize("overrides, message", [
-    (["selector.value=warmup"], "not fitted on the warm-up"),
-    (["collector.warmup_policy=runs/x"], "collector.warmup_policy drives it"),
-])
-def test_warmup_selection_true_where_it_cannot_work_names_why(overrides, message):
-    with pytest.raises(ConfigError, match=message) as info:
-        load_config(overrides=[*overrides, "selector.warmup_selection=true"])
-    assert info.value.field == "selector.warmup_selection"
-
-
 def test_configuration_reference_page_is_the_rules_own_table():
     """docs/guide/configuration.md shows every field, its default and what is allowed, as the rules say it."""
     from pe_rlhf.algorithms.proxy_q.config import RULES, reference_table
@@ -388,6 +396,7 @@ def test_configuration_reference_page_is_the_rules_own_table():
     page = (Path(__file__).resolve().parents[3] / "docs" / "guide" / "configuration.md").read_text()
     assert table in page, ("regenerate the table: python -c 'from pe_rlhf.algorithms.proxy_q.config import "
                            "reference_table; print(reference_table())'")
-    assert len(table.splitlines()) == len(RULES) + 2
+    variant_fields = sum(len(variant_defaults(g, c)) for g, (_, vs) in VARIANTS.items() for c in vs)
+    assert len(table.splitlines()) == len(RULES) + variant_fields + 2
     assert "| `optim.lr` | `0.0001` | must be a finite number > 0 |" in table
     assert "| `collector.warmup_policy` | `null` | a non-empty string, or null |" in table

@@ -28,9 +28,9 @@ TEST_KEYS = ("episodic_return", "success_rate", "safety_violation", "travel_dist
              "overtake_count")
 
 
-def _proxy_q_config(seed=0, physics=True, selector=True, disturbance=None, mentor="professional") -> dict:
+def _proxy_q_config(seed=0, physics=True, disturbance=None, mentor="professional", objective="paper") -> dict:
     cfg = {"seed": seed, "profile": "cpu", "mentor": {"name": mentor, "seed": seed},
-           "physics": {"enabled": physics}, "selector": {"enabled": selector},
+           "physics": {"enabled": physics}, "loss": {"objective": objective},
            "eval": {"episodes": 20, "split": "test"}}
     if disturbance is not None:
         cfg["disturbance"] = {"enabled": disturbance}
@@ -76,10 +76,10 @@ def haco_dir(tmp_path) -> Path:
     """``haco/seed_0``, ``haco/seed_1`` (HACO, 1000 env steps each) and an unfinished ``haco/seed_2``."""
     root = tmp_path / "haco"
     for seed, (usage, wall, violations, test) in HACO_SEEDS.items():
-        make_run(root / f"seed_{seed}", _proxy_q_config(seed, physics=False, selector=False),
+        make_run(root / f"seed_{seed}", _proxy_q_config(seed, physics=False),
                  _final(dict(zip(TEST_KEYS, test)), {"frames": 1000.0, "safety_violations": violations}),
                  _curve(1000, usage, wall, violations))
-    make_run(root / "seed_2", _proxy_q_config(2, physics=False, selector=False), None)  # still training
+    make_run(root / "seed_2", _proxy_q_config(2, physics=False), None)  # still training
     return root
 
 
@@ -191,9 +191,10 @@ def test_offline_row_is_a_dotted_level_at_its_final_test_value(tmp_path, monkeyp
 # -- labels --------------------------------------------------------------------------------------------
 @pytest.mark.parametrize("config, final, label", [
     (_proxy_q_config(), {}, "PE-RLHF"),
-    (_proxy_q_config(physics=False, selector=False), {}, "HACO"),
-    (_proxy_q_config(physics=False, selector=False, disturbance=True), {}, "HAIM-DRL"),
-    (_proxy_q_config(physics=False, selector=False, disturbance=False), {}, "HACO"),
+    (_proxy_q_config(physics=False), {}, "HACO"),
+    (_proxy_q_config(physics=False, disturbance=True), {}, "HAIM-DRL"),
+    (_proxy_q_config(physics=False, disturbance=False), {}, "HACO"),
+    (_proxy_q_config(physics=False, objective="proxy_value"), {}, "PVP"),
     (_proxy_q_config(mentor="amateur"), {}, "PE-RLHF (amateur)"),
     ({"method": "sac_lag", "seed": 0}, {"method": "SAC-Lag"}, "SAC-Lag"),
     ({"method": "hg_dagger", "mentor": {"name": "professional"}}, {}, "HG-DAgger"),  # from config.yaml alone
@@ -206,13 +207,13 @@ def test_label_inferred_from_config(tmp_path, config, final, label):
 
 @pytest.mark.parametrize("config, final, label", [
     # the recorded registry name decides, whatever the switches say
-    ({"algorithm": "haco", **_proxy_q_config(physics=True, selector=True)}, {"algorithm": "haco"}, "HACO"),
+    ({"algorithm": "haco", **_proxy_q_config(physics=True)}, {"algorithm": "haco"}, "HACO"),
     ({"algorithm": "haim-drl", **_proxy_q_config(mentor="amateur")}, {}, "HAIM-DRL (amateur)"),  # config.yaml alone
     (None, {"algorithm": "sac-lag"}, "SAC-Lag"),  # final_eval.json alone
     ({"algorithm": "bc", "method": "bc", "data": {"mentor": "amateur"}}, {"algorithm": "bc", "method": "BC"},
      "BC (amateur)"),
     ({"algorithm": "pe-rlhf", **_proxy_q_config(disturbance=True)}, {"algorithm": "pe-rlhf"}, "PE-RLHF+disturbance"),
-    ({"algorithm": "pe-rlhf", **_proxy_q_config(physics=True, selector=False)}, {}, "PE-RLHF"),  # no guess to fail
+    ({"algorithm": "pe-rlhf", **_proxy_q_config(physics=True)}, {}, "PE-RLHF"),  # no guess to fail
 ])
 def test_label_read_from_the_recorded_method(tmp_path, config, final, label):
     run = make_run(tmp_path / "run", config, _final({"success_rate": 0.5}, **final))
@@ -220,7 +221,8 @@ def test_label_read_from_the_recorded_method(tmp_path, config, final, label):
 
 
 def test_label_inference_failures_name_the_file(tmp_path):
-    mixed = make_run(tmp_path / "mixed", _proxy_q_config(physics=True, selector=False), _final({"success_rate": 0.5}))
+    mixed = make_run(tmp_path / "mixed", _proxy_q_config(physics=False, disturbance=True, objective="proxy_value"),
+                     _final({"success_rate": 0.5}))  # HAIM-DRL's disturbance critic is a PERLHFLoss term
     with pytest.raises(CompareError, match=re.escape(str(mixed / "config.yaml"))):
         infer_label(load_run(mixed))
     bare = make_run(tmp_path / "bare", None, _final({"success_rate": 0.5}))
@@ -372,7 +374,7 @@ def smoke_runs(tmp_path_factory) -> Path:
     tiny = ["profile=smoke", "eval.video=false", "collector.total_frames=200"]
     for seed in (0, 1):
         recipe.main([*tiny, f"seed={seed}", "--out", str(root / "pe" / f"seed_{seed}")])
-    recipe.main([*tiny, "physics.enabled=false", "selector.enabled=false", "--out", str(root / "haco" / "seed_0")])
+    recipe.main([*tiny, "physics.enabled=false", "--out", str(root / "haco" / "seed_0")])
     baseline_main("bc", ["profile=smoke", "optim.updates=50", "--out", str(root / "bc")])
     return root
 

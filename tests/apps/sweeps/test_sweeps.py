@@ -47,7 +47,7 @@ def test_grid_expansion_names_and_overrides():
                               "selector.epsilon_select=1", "seed=1", "mentor.seed=1")
     assert (cell.method.name, cell.mentor, cell.parameter, cell.seed) == ("pe-rlhf", "collapse", "epsilon_select=1", 1)
     assert by_name["haco__professional__s0"].overrides == (
-        "profile=smoke", "physics.enabled=false", "selector.enabled=false", "mentor.name=professional", "seed=0",
+        "profile=smoke", "physics.enabled=false", "mentor.name=professional", "seed=0",
         "mentor.seed=0")
     idm = by_name["idm-mobil__s1"]
     assert idm.overrides == ("profile=smoke", "seed=1") and idm.method.recipe == "evaluate"
@@ -75,11 +75,10 @@ def test_named_sweep_configs_load_and_validate():
         counts[spec.name] = len(cells)
     assert counts == {"claims": 2 * 2 * 5 + 5, "claims_forecast": 2 * 5,
                       "claims_balanced": 2 * 5, "claims_select": 2 * 5, "claims_amateur": 2 * 5,
-                      "claims_collapsing": 2 * 3 + 3, "claims_adversarial": 2 * 3, "claims_patience": 2 * 5,
-                      "claims_warmup_selection": 2 * 5,
+                      "claims_collapsing": 2 * 3 + 3, "claims_adversarial": 2 * 3,
                       "epsilon_sensitivity": 5 * 2 * 3 + 3, "loss_ablations": 6 * 3, "lower_bound": 4 * 2 * 3 + 3,
                       "mentor_proficiency": 12, "physics_ablation": 9 + 3, "warmup": 2 * 4 * 3,
-                      "learner_calibration": 10 * 3,
+                      "learner_calibration": 6 * 3,
                       "table1_rlhf": 5 * 3 + 3, "haco_failure_target": 2 * 3}
 
 

@@ -100,30 +100,32 @@ def value_is_fitted(cfg) -> bool:
     return parse_value_source(cfg.selector.value)[0] == "warmup"
 
 
-def warmup_selection(cfg) -> bool:
-    """``selector.warmup_selection`` resolved: ``auto`` is on when the selector's value needs no fit
-    (``forecast``, ``expert``) and the mentor drives the warm-up (no ``collector.warmup_policy``)."""
-    if not cfg.selector.enabled:
-        return False
-    if cfg.selector.warmup_selection != "auto":
-        return bool(cfg.selector.warmup_selection)
-    return not value_is_fitted(cfg) and cfg.collector.warmup_policy is None
-
-
 def build_value_source(cfg) -> ValueSource | None:
     """The selector's value estimator: a fresh ensemble to fit on the warm-up, or the frozen expert that
     ``selector.value`` names (at most ``selector.num_members`` of its members), the physics forecast
-    (``forecast``: seconds until a failure, nothing to fit), or None without a selector."""
-    if not cfg.selector.enabled:
+    (``forecast``: seconds until a failure, nothing to fit), or None without physics (HACO, HAIM-DRL, PVP). The
+    fitted ensemble's members have the loss's hidden sizes."""
+    if not cfg.physics.enabled:
         return None
     kind, path = parse_value_source(cfg.selector.value)
     if kind == "forecast":
-        return SafetyForecastValue(SafetyForecastConfig(
-            hold=float(cfg.selector.forecast_hold), hold_one_lane=bool(cfg.selector.forecast_hold_one_lane),
-            recovery=str(cfg.selector.forecast_recovery)))
+        return SafetyForecastValue(SafetyForecastConfig())
     if kind == "expert":
         return load_value_expert(path, obs_dim(cfg), max_members=int(cfg.selector.num_members))
-    return QEnsemble(obs_dim(cfg), num_members=int(cfg.selector.num_members), hidden=tuple(cfg.selector.hidden))
+    return QEnsemble(obs_dim(cfg), num_members=int(cfg.selector.num_members), hidden=tuple(cfg.loss.hidden))
+
+
+# The warm-up ensemble's fit (selector.value=warmup), at the paper's values: 0.3 gradient steps per warm-up step (3000
+# after its 10K), batch 256, Adam at 3e-4, target smoothing sigma 0.1 (a' = pi_expert(s') + N(0, sigma)) and a Polyak
+# rate of 0.005 for the fit's target copy (not in the paper; benchmarks/ensemble_fit_scale.py).
+ENSEMBLE_FIT = {"steps_per_warmup_step": 0.3, "batch_size": 256, "lr": 3.0e-4, "target_noise": 0.1, "tau": 0.005}
+
+
+def ensemble_fit_steps(cfg) -> int:
+    """Gradient steps fitting the ensemble once the warm-up ends (0: nothing is fitted: a forecast or an expert)."""
+    if not cfg.physics.enabled or not value_is_fitted(cfg):
+        return 0
+    return max(1, math.ceil(ENSEMBLE_FIT["steps_per_warmup_step"] * int(cfg.collector.warmup_steps)))
 
 
 # selector.epsilon_select=null takes the value source's own threshold, in that source's units: the expert's as in the
@@ -140,11 +142,7 @@ def epsilon_select(cfg) -> float:
 
 
 def build_selector(cfg, value_source: ValueSource) -> HybridActionSelector:
-    margin, imminent = cfg.selector.switch_margin, cfg.selector.imminent_failure
-    return HybridActionSelector(value_source, epsilon_select(cfg), cfg.selector.variance_threshold,
-                                switch_margin=None if margin is None else float(margin),
-                                veto_patience=int(cfg.selector.veto_patience),
-                                imminent_failure=None if imminent is None else float(imminent))
+    return HybridActionSelector(value_source, epsilon_select(cfg))
 
 
 def build_train_env(cfg, env_config, mentor: Mentor, value_source: ValueSource | None, physics,
@@ -161,8 +159,7 @@ def build_train_env(cfg, env_config, mentor: Mentor, value_source: ValueSource |
         selector = build_selector(cfg, value_source)
     warmup_steps = math.ceil(int(cfg.collector.warmup_steps) / num_workers)
     env.append_transform(InterventionTransform(mentor, selector, physics if selector else None,
-                                               warmup_steps=warmup_steps, warmup_driver=build_warmup_driver(cfg),
-                                               warmup_selection=warmup_selection(cfg)))
+                                               warmup_steps=warmup_steps, warmup_driver=build_warmup_driver(cfg)))
     if cfg.disturbance.enabled:
         d = cfg.disturbance
         env.append_transform(TrafficDisturbanceCost(float(d.threshold), float(d.horizon), float(d.follower_range)))
@@ -202,10 +199,9 @@ def make_worker_env(cfg, worker_index: int, num_workers: int, start_frames: int 
 
 
 def exploration_type(cfg) -> ExplorationType:
-    """How the agent proposes actions while collecting (``collector.exploration``): ``random`` samples
-    the TanhNormal policy (SAC's usual collection); ``deterministic`` proposes its mode, so the
-    mentor judges what the agent means rather than its exploration noise."""
-    return ExplorationType.RANDOM if str(cfg.collector.exploration) == "random" else ExplorationType.DETERMINISTIC
+    """How the agent proposes actions while collecting: sampled (the paper loss's TanhNormal policy, SAC's usual
+    collection; the proxy-value loss's deterministic actor is its own sample, plus ``collector.exploration_noise``)."""
+    return ExplorationType.RANDOM
 
 
 def build_collector(cfg, env, actor, total_frames: int | None = None, *, value_source: ValueSource | None = None,

@@ -24,7 +24,7 @@ from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf, open_dict
 
 from pe_rlhf.runtime.config import (DEFAULTS_LIST_KEY, RECIPES_ENV_VAR, check_env, check_mentor_kwargs,
                                     check_recorded_algorithm, read_config_file)
@@ -32,7 +32,9 @@ from pe_rlhf.runtime.config_compose import check_overrides, compose_file, leaf_k
 from pe_rlhf.runtime.config_rules import ConfigError, invalid_value
 from pe_rlhf.runtime.config_schema import OPEN_GROUPS
 from pe_rlhf.algorithms.proxy_q.config_profiles import PROFILES
-from pe_rlhf.algorithms.proxy_q.config_schema import PROXY_Q, RULES, default
+from pe_rlhf.algorithms.proxy_q.config_schema import (PROXY_Q, RULES, VARIANTS, default, defaults, variant_defaults,
+                                                      variant_rules)
+from pe_rlhf.algorithms.proxy_q.value_expert import parse_value_source
 
 RECIPE_CONFIG = Path("pe_rlhf") / "config.yaml"  # relative to the recipes directory
 PROXY_Q_ALGORITHMS = ("pe-rlhf", "haco", "haim-drl", "pvp")  # this recipe's methods, by registry name
@@ -84,6 +86,8 @@ def load_config(path: str | Path | None = None, overrides: Iterable[str] = (), *
         values, recorded = read_config_file(path)
         recipe = DEFAULTS_LIST_KEY in values and apply_profile  # a Hydra primary config, not a run's saved one
         values = {k: v for k, v in values.items() if k != DEFAULTS_LIST_KEY}
+        if not recipe:
+            values = retire_settings(values)
         cfg = compose_file(path, overrides, values, recipe=recipe, apply_profile=apply_profile, schema=PROXY_Q)
     cfg = finish_config(cfg, overrides, apply_human_defaults=apply_profile, validate=validate)
     if validate:
@@ -91,11 +95,81 @@ def load_config(path: str | Path | None = None, overrides: Iterable[str] = (), *
     return cfg
 
 
+# Settings a run folder's saved config may hold from before they were retired (issue 43), each dropped on reading it:
+# the selector's experiment options whose measurements lost (docs/results/claims/README.md), its Q-ensemble fit
+# (now builders.ENSEMBLE_FIT), selector.enabled (physics.enabled says it), and the proxy-value loss's physics_labels and
+# preactivation_penalty (docs/experiments/learner.md). A run resumed from such a folder goes on under today's code.
+RETIRED = ("selector.enabled", "selector.variance_threshold", "selector.switch_margin", "selector.veto_patience",
+           "selector.imminent_failure", "selector.forecast_hold", "selector.forecast_hold_one_lane",
+           "selector.forecast_recovery", "selector.warmup_selection", "selector.hidden", "selector.warmup_fit_steps",
+           "selector.target_noise", "selector.tau", "selector.lr", "selector.batch_size", "loss.physics_labels",
+           "loss.preactivation_penalty", "loss.fused_critics", "loss.target_noise_clip", "collector.learning_starts",
+           "collector.exploration")
+# ... and those that moved: {old: new}
+MOVED = {"loss.disturbance_weight": "disturbance.weight", "loss.num_disturbance_qvalue_nets": "disturbance.num_qvalue_nets"}
+
+
+def retire_settings(values: dict[str, Any]) -> dict[str, Any]:
+    """A saved config's values without the :data:`RETIRED` settings, the :data:`MOVED` ones where they are now
+    (where the group they moved to is on; else dropped), the physics group's booleans as its two choices. Returns a
+    new dict."""
+    out = {group: dict(node) if isinstance(node, dict) else node for group, node in values.items()}
+    physics = out.get("physics")
+    if isinstance(physics, dict) and "use_idm" in physics:  # from before model/obstacles
+        idm, mobil = physics.pop("use_idm", True), physics.pop("use_mobil", True)
+        see, stop = physics.pop("see_obstacles", False), physics.pop("stop_for_obstacles", True)
+        physics["model"] = "idm_mobil" if idm and mobil else "idm" if idm else "mobil"
+        physics["obstacles"] = "avoid" if see else "stop" if stop else "blind"
+    for key in (*RETIRED, *MOVED):
+        group, name = key.split(".", 1)
+        node = out.get(group)
+        if not isinstance(node, dict) or name not in node:
+            continue
+        value = node.pop(name)
+        target = MOVED.get(key)
+        if target is not None:
+            new_group, new_name = target.split(".", 1)
+            if isinstance(out.get(new_group), dict) and out[new_group].get("enabled"):
+                out[new_group].setdefault(new_name, value)
+    return out
+
+
+def complete_variants(cfg: DictConfig) -> None:
+    """Each variant group (:data:`~pe_rlhf.algorithms.proxy_q.config_schema.VARIANTS`: ``loss`` by ``objective``,
+    ``disturbance`` by ``enabled``) to exactly its chosen variant's settings, in its dataclass's order: a missing one
+    at its default; another variant's one dropped where it holds that variant's default (a recipe file shows its
+    default variant's settings, and ``loss.objective=proxy_value`` switches), refused where it does not (it would
+    do nothing). Raises :class:`ConfigError` naming the field."""
+    for group, (key, variants) in VARIANTS.items():
+        node = OmegaConf.to_container(cfg[group]) if OmegaConf.select(cfg, group) is not None else {}
+        if not isinstance(node, dict):
+            raise invalid_value(group, node, "must be a group of settings")
+        choice = node.get(key, defaults()[group][key])
+        if not any(choice == c and type(choice) is type(c) for c in variants):
+            raise invalid_value(f"{group}.{key}", choice, f"allowed: {[str(c).lower() for c in variants]}")
+        own = variant_defaults(group, choice)
+        for name, value in node.items():
+            if name in own:
+                continue
+            owners = [c for c in variants if c != choice and name in variant_defaults(group, c)]
+            if not owners:
+                raise ConfigError(f"unknown config key '{group}.{name}'; the settings of {group}.{key}="
+                                  f"{str(choice).lower()}: {list(own)}", f"{group}.{name}")
+            if value != variant_defaults(group, owners[0])[name]:
+                raise invalid_value(f"{group}.{name}", value, f"belongs to {group}.{key}="
+                                    f"{str(owners[0]).lower()}, and this config has {group}.{key}={str(choice).lower()}")
+        with open_dict(cfg):
+            cfg[group] = {name: node.get(name, value) for name, value in own.items()}
+        OmegaConf.set_struct(cfg[group], True)
+
+
 def finish_config(cfg: DictConfig, overrides: Iterable[str] = (), *, apply_human_defaults: bool = True,
                   validate: bool = True) -> DictConfig:
-    """What follows composition: with ``mentor.name=human``, :data:`HUMAN_DEFAULTS` for the fields neither
-    ``overrides`` name nor the files set (skipped for a saved config, which holds its resolved values), then
-    :func:`validate_config`. Returns ``cfg``, changed in place."""
+    """What follows composition: each variant group completed (:func:`complete_variants`); with
+    ``mentor.name=human``, :data:`HUMAN_DEFAULTS` for the fields neither ``overrides`` name nor the files set
+    (skipped for a saved config, which holds its resolved values); then :func:`validate_config`. Returns ``cfg``,
+    changed in place."""
+    complete_variants(cfg)
     if apply_human_defaults:
         given = {override_key(item) for item in overrides}
         given |= {key for key in HUMAN_DEFAULTS if OmegaConf.select(cfg, key) != default(key)}
@@ -126,25 +200,34 @@ def reference_table() -> str:
     """The recipe config's fields as a Markdown table: field, default, what is allowed (each rule's own words).
 
     ``docs/guide/configuration.md`` holds this table (a test keeps them equal). ``env.*`` takes any
-    ``DrivingConfig`` field and ``mentor.kwargs`` the mentor's arguments; their checks are listed below it.
+    ``DrivingConfig`` field and ``mentor.kwargs`` the mentor's arguments; their checks are listed below it. A
+    variant group's fields follow the fixed ones, each variant's with its choice (``loss.gap_coef`` (objective=paper)).
     """
     rows = ["| field | default | allowed |", "|---|---|---|"]
-    for field, rule in RULES.items():
-        default_value = default(field)
+    fields = [(f"`{field}`", rule, default(field)) for field, rule in RULES.items()]
+    for group, (key, variants) in VARIANTS.items():
+        for choice in variants:
+            values = variant_defaults(group, choice)
+            fields += [(f"`{field}` ({key}={str(choice).lower()})", rule, values[field.split(".", 1)[1]])
+                       for field, rule in variant_rules(group, choice).items()]
+    for field, rule, default_value in fields:
         allowed = rule(_PROBE) or ("a non-empty string" + (", or null" if default_value is None else ""))
         shown = ("null" if default_value is None else str(default_value).lower() if isinstance(default_value, bool)
                  else default_value)
-        rows.append(f"| `{field}` | `{shown}` | {allowed.replace('|', '/')} |")
+        rows.append(f"| {field} | `{shown}` | {allowed.replace('|', '/')} |")
     return "\n".join(rows)
 
 
 def validate_config(cfg: DictConfig) -> None:
     """Check every field (:data:`RULES`), the env (as a DrivingConfig), the mentor's kwargs, and the
     fields that constrain each other; raise :class:`ConfigError` at the first problem."""
+    rules = dict(RULES)
+    for group, (key, _) in VARIANTS.items():
+        rules.update(variant_rules(group, OmegaConf.select(cfg, f"{group}.{key}")))
     for key in leaf_keys(OmegaConf.to_container(cfg)):
-        if key not in RULES and key not in OPEN_GROUPS:
-            raise ConfigError(f"unknown config key {key!r}; known: {sorted(RULES) + list(OPEN_GROUPS)}", key)
-    for field, rule in RULES.items():
+        if key not in rules and key not in OPEN_GROUPS:
+            raise ConfigError(f"unknown config key {key!r}; known: {sorted(rules) + list(OPEN_GROUPS)}", key)
+    for field, rule in rules.items():
         value = OmegaConf.select(cfg, field, default=_MISSING)
         if value is _MISSING:
             raise ConfigError(f"{field} is missing from the config", field)
@@ -167,9 +250,6 @@ def _check_relations(cfg: DictConfig) -> None:
     for field, value, bound_field, bound in pairs:
         if value > bound:
             raise invalid_value(field, value, f"must be <= {bound_field} ({bound})")
-    if c.learning_starts >= c.total_frames:
-        raise invalid_value("collector.learning_starts", c.learning_starts,
-                    f"must be < collector.total_frames ({c.total_frames}), or no update ever runs")
     if c.backend == "single" and c.num_workers != 1:
         raise invalid_value("collector.num_workers", c.num_workers,
                     "the single backend runs one env: use 1, or collector.backend=multisync|multiasync")
@@ -191,55 +271,34 @@ def _check_relations(cfg: DictConfig) -> None:
     if c.warmup_policy is not None and c.warmup_steps < 1:
         raise invalid_value("collector.warmup_policy", c.warmup_policy,
                     "drives the warm-up, but collector.warmup_steps is 0: give the warm-up steps, or null")
-    method_name(cfg)  # physics/selector combination
-    if cfg.selector.enabled and cfg.selector.warmup_selection is True:
-        from pe_rlhf.algorithms.proxy_q.value_expert import parse_value_source
-
-        if parse_value_source(cfg.selector.value)[0] == "warmup":
-            raise invalid_value("selector.warmup_selection", True,
-                        "needs a value source that is not fitted on the warm-up "
-                        "(selector.value=forecast or expert): use auto or false")
-        if c.warmup_policy is not None:
-            raise invalid_value("selector.warmup_selection", True,
-                        "judges the mentor's warm-up, but collector.warmup_policy "
-                        "drives it: use auto or false")
-    if cfg.selector.enabled:
-        for field in ("collector.warmup_steps", "selector.warmup_fit_steps"):
-            if OmegaConf.select(cfg, field) < 1:
-                raise invalid_value(field, OmegaConf.select(cfg, field),
-                            "must be >= 1 with selector.enabled (the Q-ensemble is fitted on warm-up data)")
+    method_name(cfg)  # the loss and the disturbance critic
+    if cfg.physics.enabled and parse_value_source(cfg.selector.value)[0] == "warmup" and c.warmup_steps < 1:
+        raise invalid_value("collector.warmup_steps", c.warmup_steps,
+                            "must be >= 1 with selector.value=warmup (the Q-ensemble is fitted on warm-up data)")
 
 
 # --------------------------------------------------------------------------- views
 
 
 def method_name(cfg: DictConfig) -> str:
-    """``"PE-RLHF"`` (physics + selector), ``"HACO"`` (neither) or ``"HAIM-DRL"`` (HACO with
-    ``disturbance.enabled``; PE-RLHF with it is ``"PE-RLHF+disturbance"``), ``"PVP"`` (neither, with
-    ``loss.objective=proxy_value``); the mixed cases are errors.
+    """``"PE-RLHF"`` (``physics.enabled``), ``"HACO"`` (without physics) or ``"HAIM-DRL"`` (HACO with
+    ``disturbance.enabled``; PE-RLHF with it is ``"PE-RLHF+disturbance"``), ``"PVP"`` (without physics, with
+    ``loss.objective=proxy_value``).
 
-    The intervention transform takes physics and selector together or not at all; the paper's
-    "w/o ensemble" ablation is ``selector.num_members=1``, its physics ablations are
-    ``physics.use_idm`` / ``physics.use_mobil``.
+    With ``physics.enabled`` physics proposes and the selector picks during a takeover (the paper's "w/o ensemble"
+    ablation is ``selector.num_members=1``, its physics ablations ``physics.model=idm`` / ``mobil``).
     """
-    physics, selector = cfg.physics.enabled, cfg.selector.enabled
+    physics = bool(cfg.physics.enabled)
     disturbance = bool(cfg.disturbance.enabled)
     if str(OmegaConf.select(cfg, "loss.objective", default="paper")) == "proxy_value":
         if disturbance:
             raise invalid_value("disturbance.enabled", True, "needs loss.objective=paper (HAIM-DRL's disturbance "
                                 "critic is a PERLHFLoss term)")
-        if not physics and not selector:
+        if not physics:
             return "PVP"
-    if physics and selector:
+    if physics:
         return "PE-RLHF+disturbance" if disturbance else "PE-RLHF"
-    if not physics and not selector:
-        return "HAIM-DRL" if disturbance else "HACO"
-    if selector:
-        raise invalid_value("selector.enabled", True, "needs physics.enabled=true (PE-RLHF chooses between the "
-                    "mentor's and the physics action); set both false for HACO")
-    raise invalid_value("physics.enabled", True, "needs selector.enabled=true (the selector decides when the physics "
-                "action replaces the mentor's); set both false for HACO, or selector.num_members=1 for the "
-                "'w/o ensemble' ablation")
+    return "HAIM-DRL" if disturbance else "HACO"
 
 
 def algorithm_name(cfg: DictConfig) -> str:
@@ -253,8 +312,8 @@ def physics_config(cfg: DictConfig):
     from pe_rlhf.physics.policy import PhysicsConfig
 
     p = cfg.physics
-    return PhysicsConfig(see_obstacles=p.see_obstacles, stop_for_obstacles=p.stop_for_obstacles,
-                         use_idm=p.use_idm, use_mobil=p.use_mobil)
+    return PhysicsConfig(see_obstacles=p.obstacles == "avoid", stop_for_obstacles=p.obstacles != "blind",
+                         use_idm=p.model != "mobil", use_mobil=p.model != "idm")
 
 
 __all__ = ["HUMAN_DEFAULTS", "PROFILES", "PROXY_Q_ALGORITHMS", "RULES", "algorithm_name", "default_config_path",

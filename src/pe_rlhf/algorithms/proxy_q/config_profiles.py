@@ -31,19 +31,17 @@ PROFILES: dict[str, dict[str, Any]] = {
     # evaluation of 10 test episodes at the end, a GIF; `train.py --compare idm-mobil` adds the
     # physics policy on the same scenes to the final table.
     "quick": {
-        "selector": {"warmup_fit_steps": 1500},
         "collector": {"total_frames": 9000, "warmup_steps": 5000},
         "replay_buffer": {"batch_size": 256},
         "eval": {"every_frames": 0, "episodes": 10, "video": True},
         "checkpoint": {"every_frames": 3000},
     },
-    # CI: the whole loop (warm-up, ensemble fit, updates, eval, checkpoint) in about a minute. No test-episode GIF:
+    # CI: the whole loop (warm-up, updates, eval, checkpoint) in about a minute. No test-episode GIF:
     # filming it was ~45% of a smoke run's CPU time (cProfile, 2026-12-06); eval.video=true films it.
     "smoke": {
         "env": {"horizon": 100, "min_blocks": 2, "max_blocks": 2},
-        "selector": {"num_members": 2, "hidden": [32, 32], "warmup_fit_steps": 20,
-                     "batch_size": 32},
-        "collector": {"total_frames": 300, "frames_per_batch": 50, "warmup_steps": 100, "learning_starts": 50},
+        "selector": {"num_members": 2},
+        "collector": {"total_frames": 300, "frames_per_batch": 50, "warmup_steps": 100},
         "replay_buffer": {"size": 1000, "batch_size": 32},
         "optim": {"updates_per_batch": 5},
         "loss": {"hidden": [32, 32]},

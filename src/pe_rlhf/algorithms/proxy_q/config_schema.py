@@ -7,7 +7,7 @@ here the rules of these recipes' fields alone: what is allowed, in the words of 
 ``config.yaml`` over it (:data:`PROXY_Q`, :mod:`pe_rlhf.runtime.config_compose`); :data:`RULES` (``{dotted field:
 rule}``) and :func:`defaults` are derived from it.
 
-Method: PE-RLHF = ``physics.enabled`` + ``selector.enabled``; HACO = both false (``recipes/haco``); HAIM-DRL =
+Method: PE-RLHF = ``physics.enabled`` (physics proposes, the selector picks); HACO = false (``recipes/haco``); HAIM-DRL =
 HACO + ``disturbance.enabled`` (``recipes/haim_drl``).
 
 The composed config is not type-checked by OmegaConf (its typed nodes would turn ``loss.cosine_cost=2`` into
@@ -23,7 +23,6 @@ from typing import Any, Optional
 
 from pe_rlhf.modules.precision import PRECISIONS
 from pe_rlhf.objectives.perlhf import FAILURE_TARGETS
-from pe_rlhf.physics.safety import RECOVERIES
 from pe_rlhf.runtime.config_compose import RecipeSchema
 from pe_rlhf.runtime.config_rules import (SPLITS, Rule, rule_bool, rule_choice, rule_hidden, rule_int,
                                           rule_mentor_name, rule_number, rule_optional, rule_string,
@@ -32,6 +31,8 @@ from pe_rlhf.runtime.config_schema import ActorSelectionConfig, LoggerConfig, kn
 from pe_rlhf.algorithms.proxy_q.config_profiles import PROFILES
 
 BACKENDS = ("single", "multisync", "multiasync", "ray")
+PHYSICS_MODELS = ("idm_mobil", "idm", "mobil")
+PHYSICS_OBSTACLES = ("stop", "avoid", "blind")
 # paper: PERLHFLoss (HACO's proxy-Q, as the paper); proxy_value: ProxyValueLoss (PVP's bounded proxy values)
 OBJECTIVES = ("paper", "proxy_value")
 
@@ -78,53 +79,27 @@ class PhysicsSettings:
     """The recipe's physics group, pi_phy: IDM (longitudinal) + MOBIL (lane changes), paper parameters (the policy's own
     parameters are :class:`pe_rlhf.physics.PhysicsConfig`)."""
 
-    enabled: bool = knob(True, rule_bool)
-    see_obstacles: bool = knob(False, rule_bool)  # true: IDM brakes for static obstacles and MOBIL passes them
-    # IDM brakes for obstacles, MOBIL ignores them (stuck behind, as the paper describes); false: blind
-    stop_for_obstacles: bool = knob(True, rule_bool)
-    use_idm: bool = knob(True, rule_bool)  # false: "MOBIL only" ablation
-    use_mobil: bool = knob(True, rule_bool)  # false: "IDM only" ablation
+    enabled: bool = knob(True, rule_bool)  # false: no physics and no selector (HACO, HAIM-DRL, PVP)
+    # idm_mobil (the paper) | idm (the "IDM only" ablation: no lane change) | mobil (the "MOBIL only" ablation: cruise)
+    model: str = knob("idm_mobil", rule_choice(*PHYSICS_MODELS))
+    # stop: IDM brakes for static obstacles, MOBIL ignores them (stuck behind, as the paper describes) | avoid: IDM
+    # brakes for them and MOBIL passes them | blind: neither sees them
+    obstacles: str = knob("stop", rule_choice(*PHYSICS_OBSTACLES))
 
 
 @dataclass
 class SelectorConfig:
-    """T_select: Q-ensemble value takeover (a_human vs a_phy)."""
+    """T_select: which of the mentor's and physics' actions a takeover executes (with ``physics.enabled``)."""
 
-    enabled: bool = knob(True, rule_bool)
-    # forecast (seconds until a crash or off road, from the vehicle model: docs/results/claims) | expert (the
-    # packaged SAC expert's critics) | expert:PATH (a Q-ensemble file or run folder) | warmup (fitted on the warm-up)
+    # forecast (seconds until a crash or off road, from the vehicle model: docs/guide/shield.md) | expert (the
+    # packaged SAC expert's critics) | expert:PATH (a Q-ensemble file or run folder) | warmup (a Q-ensemble fitted on
+    # the warm-up, the paper's)
     value: str = knob("forecast", rule_value_source)
     # null: the value source's own (expert 1.5, the authors' code; warmup 0.5, the paper's table; forecast -0.5 s,
     # calibrated on train scenes: docs/results/claims); < 0: the mentor unless physics is valued -eps above
     epsilon_select: Optional[float] = knob(None, rule_optional(rule_number(meaning=EPSILON_SELECT_MEANING)))
-    # the authors' code's escape (trust the mentor when std_k Q(s, a_phy) exceeds it)
-    variance_threshold: Optional[float] = knob(None, rule_optional(rule_number(0)))
-    # null: each step judged alone (paper); m: a takeover's choice switches only past eps -/+ m
-    switch_margin: Optional[float] = knob(None, rule_optional(rule_number(0)))
-    # physics replaces the mentor after this many consecutive vetoes in a takeover (1: every step judged alone)
-    veto_patience: int = knob(1, rule_int(1))
-    # with veto_patience > 1: a veto acts at once where the mentor's action fails within this many seconds
-    imminent_failure: Optional[float] = knob(None, rule_optional(rule_number()))
-    # selector.value=forecast: seconds each candidate action is held before the forecast's recovery
-    forecast_hold: float = knob(1.0, rule_number(0, 3))
-    # selector.value=forecast: the hold ends once the car has moved one lane width sideways (a lane change done)
-    forecast_hold_one_lane: bool = knob(False, rule_bool)
-    # selector.value=forecast: route (steer back along the route) | lanes (the best of the nearest lane's centre
-    # and its neighbours')
-    forecast_recovery: str = knob("route", rule_choice(*RECOVERIES))
-    # the selector judges the mentor's warm-up too: true | auto (when selector.value needs no fit and the mentor
-    # drives the warm-up) | false (the paper: the warm-up bypasses it; at seed 0 judging it cut the adversarial
-    # run's training violations 68 -> 9 but the professional agent fell 0.54 -> 0.12: docs/results/claims)
-    warmup_selection: Any = knob(False, lambda v: None if v == "auto" or isinstance(v, bool)
-                                 else "allowed: auto, true, false")
-    num_members: int = knob(5, rule_int(1))  # 1 = the "w/o ensemble" ablation
-    hidden: list[int] = knob([256, 256], rule_hidden)
-    warmup_fit_steps: int = knob(3000, rule_int(0))  # gradient steps fitting the ensemble once warm-up ends
-    target_noise: float = knob(0.1, rule_number(0))  # sigma of a' = pi_expert(s') + N(0, sigma)
-    # Polyak rate of the fit's target copy (not in the paper; see benchmarks/ensemble_fit_scale.py)
-    tau: float = knob(0.005, rule_number(0, 1, lo_open=True))
-    lr: float = knob(3.0e-4, _POSITIVE)
-    batch_size: int = knob(256, rule_int(1))
+    # Q-ensemble value sources (expert, warmup): members; 1 = the "w/o ensemble" ablation
+    num_members: int = knob(5, rule_int(1))
 
 
 @dataclass
@@ -134,11 +109,8 @@ class CollectorConfig:
     warmup_steps: int = knob(10000, rule_int(0))  # the mentor drives alone; its data trains the Q-ensemble
     # a run folder (PE-RLHF/HACO or baseline): its trained actor drives the warm-up instead (expert-policy warm-up)
     warmup_policy: Optional[str] = knob(None, rule_optional(rule_string))
-    learning_starts: int = knob(100, rule_int(0))
-    # random: sample the policy while collecting | deterministic: propose its mode
-    exploration: str = knob("random", rule_choice("random", "deterministic"))
     # loss.objective=proxy_value: sigma of the Gaussian noise added to the deterministic actor's proposal while
-    # collecting (with exploration=random); 0: none (PVP)
+    # collecting; 0: none (PVP). (loss.objective=paper samples its stochastic actor.)
     exploration_noise: float = knob(0.0, rule_number(0, 1))
     backend: str = knob("single", rule_backend)  # single | multisync | multiasync | ray
     num_workers: int = knob(1, rule_int(1))
@@ -180,54 +152,76 @@ def _is_device(v: str) -> bool:
 
 
 @dataclass
-class LossConfig:
-    """The loss's arguments (+ tau for the target networks' SoftUpdate): PERLHFLoss (``objective=paper``) or
-    ProxyValueLoss (``objective=proxy_value``); each reads its own fields below and the shared ones."""
+class LossCommon:
+    """What both losses read (+ tau for the target networks' SoftUpdate); ``objective`` picks the loss and with it the
+    group's other settings (:data:`LOSSES`)."""
 
     objective: str = knob("paper", rule_choice(*OBJECTIVES))  # paper (PERLHFLoss) | proxy_value (ProxyValueLoss)
     gamma: float = knob(0.99, rule_number(0, 1))
     tau: float = knob(0.005, rule_number(0, 1, lo_open=True))
+    hidden: list[int] = knob([256, 256], rule_hidden)  # actor and critics (and a fitted selector ensemble's members)
+    layer_norm: bool = knob(False, rule_bool)  # a LayerNorm after each hidden layer of the critics (RLPD, BRO)
+
+
+@dataclass
+class PaperLossConfig(LossCommon):
+    """``loss.objective=paper``: PERLHFLoss, HACO's proxy-Q loss as the paper (spec §3)."""
+
+    num_qvalue_nets: int = knob(2, rule_int(1))  # twin Q
     gap_coef: float = knob(10.0, rule_number(0))  # "CQL temperature"
     psi: float = knob(1.0, rule_number(0))
     intervention_weight: float = knob(1.0, rule_number(0))  # beta
     cosine_cost: bool = knob(True, rule_bool)  # false: the "w/o cosine takeover cost" ablation
-    num_qvalue_nets: int = knob(2, rule_int(1))  # twin Q
     num_intervention_qvalue_nets: int = knob(1, rule_int(1))
     target_entropy: Any = knob("auto", rule_target_entropy)  # auto = -dim(A) = -2 (authors' code); the paper: 2.0
     alpha_init: float = knob(1.0, _POSITIVE)
-    hidden: list[int] = knob([256, 256], rule_hidden)  # actor and critics
-    disturbance_weight: float = knob(1.0, rule_number(0))  # actor's weight on Q_dist (with disturbance.enabled)
-    num_disturbance_qvalue_nets: int = knob(2, rule_int(1))  # HAIM-DRL's twin disturbance critic
     # proxy-Q target of a crash/off-road end: zero (terminal 0) | bootstrap (as if it went on) | batch_min (the
     # batch's lowest)
     failure_target: str = knob("batch_min", rule_choice(*FAILURE_TARGETS))
-    # evaluate the critics from their stacked parameters, each state's first-layer product once (same values up
-    # to float summation order; false: through the modules)
-    fused_critics: bool = knob(True, rule_bool)
-    layer_norm: bool = knob(False, rule_bool)  # a LayerNorm after each hidden layer of the critics (RLPD, BRO)
-    # objective=proxy_value: the label of the executed action (+B) and of the agent's proposal (-B) on takeover rows
+
+
+@dataclass
+class ProxyValueLossConfig(LossCommon):
+    """``loss.objective=proxy_value``: ProxyValueLoss, PVP's bounded proxy values (TD3: twin critics, a deterministic
+    actor)."""
+
+    objective: str = knob("proxy_value", rule_choice(*OBJECTIVES))  # paper (PERLHFLoss) | proxy_value (ProxyValueLoss)
+    # the label of the executed action (+B) and of the agent's proposal (-B) on takeover rows
     q_value_bound: float = knob(1.0, _POSITIVE)
-    policy_delay: int = knob(2, rule_int(1))  # objective=proxy_value: an actor step every policy_delay critic steps
-    target_noise: float = knob(0.2, rule_number(0))  # objective=proxy_value: TD3's target smoothing sigma
-    target_noise_clip: float = knob(0.5, rule_number(0))  # ... clipped at this
-    bc_weight: float = knob(0.0, rule_number(0))  # objective=proxy_value: behaviour cloning on takeover rows
-    # objective=proxy_value: leave the rows where a takeover starts out of the TD term (PVP's mask)
-    mask_td_at_takeover_start: bool = knob(False, rule_bool)
-    # objective=proxy_value: false: takeover rows where physics was executed get TD only (no labels, no cloning)
-    physics_labels: bool = knob(True, rule_bool)
-    # objective=proxy_value: weight of the mean squared pre-tanh output in the actor's loss (keeps it unsaturated)
-    preactivation_penalty: float = knob(0.0, rule_number(0))
+    policy_delay: int = knob(2, rule_int(1))  # an actor step every policy_delay critic steps
+    target_noise: float = knob(0.2, rule_number(0))  # TD3's target smoothing sigma (clipped at 2.5 sigma, TD3's 0.5)
+    bc_weight: float = knob(0.0, rule_number(0))  # behaviour cloning on takeover rows (PVP4Real)
+    mask_td_at_takeover_start: bool = knob(False, rule_bool)  # leave the rows where a takeover starts out of TD (PVP)
+
+
+# loss.objective -> its group's settings
+LOSSES: dict[str, type] = {"paper": PaperLossConfig, "proxy_value": ProxyValueLossConfig}
+
+
+@dataclass
+class DisturbanceOff:
+    """``disturbance.enabled=false`` (PE-RLHF, HACO, PVP): the group's one setting."""
+
+    # true: HAIM-DRL's traffic-disturbance cost and critic (the group's other settings appear)
+    enabled: bool = knob(False, rule_bool)
 
 
 @dataclass
 class DisturbanceConfig:
-    """HAIM-DRL's traffic-disturbance cost (pe_rlhf.transforms.TrafficDisturbanceCost)."""
+    """``disturbance.enabled=true``: HAIM-DRL's traffic-disturbance cost (pe_rlhf.transforms.TrafficDisturbanceCost)
+    and PERLHFLoss's disturbance critic Q_dist."""
 
-    # true: the transform writes ("next", "disturbance_cost"), PERLHFLoss gets Q_dist
-    enabled: bool = knob(False, rule_bool)
+    # the transform writes ("next", "disturbance_cost"), PERLHFLoss gets Q_dist
+    enabled: bool = knob(True, rule_bool)
     threshold: float = knob(5.0, _POSITIVE)  # m/s^2: a step braking harder than this outside a takeover
     horizon: float = knob(3.0, _POSITIVE)  # s: IDM prediction of the followers' slowdown at the start of an event
     follower_range: float = knob(60.0, _POSITIVE)  # m behind the ego (its lane) within which vehicles count
+    weight: float = knob(1.0, rule_number(0))  # the actor's weight on Q_dist
+    num_qvalue_nets: int = knob(2, rule_int(1))  # the twin disturbance critic
+
+
+# disturbance.enabled -> its group's settings
+DISTURBANCES: dict[bool, type] = {False: DisturbanceOff, True: DisturbanceConfig}
 
 
 @dataclass
@@ -260,8 +254,9 @@ class RecipeConfig:
     collector: CollectorConfig = field(default_factory=CollectorConfig)
     replay_buffer: ReplayBufferConfig = field(default_factory=ReplayBufferConfig)
     optim: OptimConfig = field(default_factory=OptimConfig)
-    loss: LossConfig = field(default_factory=LossConfig)
-    disturbance: DisturbanceConfig = field(default_factory=DisturbanceConfig)
+    # the settings of loss.objective's loss (LOSSES): loss.objective=proxy_value brings ProxyValueLoss's
+    loss: PaperLossConfig = field(default_factory=PaperLossConfig)
+    disturbance: DisturbanceOff = field(default_factory=DisturbanceOff)
     logger: LoggerConfig = field(default_factory=LoggerConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
     checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)
@@ -278,20 +273,47 @@ def _fields(schema: type, prefix: str = ""):
 
 
 _GROUPS = {cls.__name__: cls for cls in (MentorConfig, PhysicsSettings, SelectorConfig, CollectorConfig,
-                                         ReplayBufferConfig, OptimConfig, LossConfig, DisturbanceConfig,
-                                         LoggerConfig, EvalConfig, CheckpointConfig, ActorSelectionConfig)}
+                                         ReplayBufferConfig, OptimConfig, PaperLossConfig, ProxyValueLossConfig,
+                                         DisturbanceOff, DisturbanceConfig, LoggerConfig, EvalConfig,
+                                         CheckpointConfig, ActorSelectionConfig)}
 
-# {dotted field: rule}, every field but the open groups, in the schema's order.
-RULES: dict[str, Rule] = {name: f.metadata["rule"] for name, f in _fields(RecipeConfig) if "rule" in f.metadata}
+# Groups whose settings depend on one of their fields: {group: (the field, {its value: the group's dataclass})}. A
+# config shows the chosen variant's settings only; the schema's (and Hydra's) node for them is open, and
+# pe_rlhf.algorithms.proxy_q.config.complete_variants completes and checks it after composition.
+VARIANTS: dict[str, tuple[str, dict[Any, type]]] = {"loss": ("objective", LOSSES),
+                                                    "disturbance": ("enabled", DISTURBANCES)}
+
+# {dotted field: rule}, every field but the open groups and the variant groups', in the schema's order.
+RULES: dict[str, Rule] = {name: f.metadata["rule"] for name, f in _fields(RecipeConfig)
+                          if "rule" in f.metadata and name.split(".", 1)[0] not in VARIANTS}
+
+
+def variant_rules(group: str, choice: Any) -> dict[str, Rule]:
+    """``{dotted field: rule}`` of ``group``'s variant ``choice`` (``variant_rules("loss", "proxy_value")``)."""
+    return {name: f.metadata["rule"] for name, f in _fields(VARIANTS[group][1][choice], f"{group}.")}
+
+
+def variant_defaults(group: str, choice: Any) -> dict[str, Any]:
+    """The defaults of ``group``'s variant ``choice`` as a plain dict (a new copy each call)."""
+    return dataclasses.asdict(VARIANTS[group][1][choice]())
 
 
 def defaults() -> dict[str, Any]:
-    """The schema's defaults as a plain nested dict (a new copy each call)."""
+    """The schema's defaults as a plain nested dict (a new copy each call): each variant group at its default
+    variant (``loss.objective=paper``, ``disturbance.enabled=false``)."""
     return dataclasses.asdict(RecipeConfig())
 
 
 def default(key: str) -> Any:
-    """The default of one dotted field (``optim.lr`` -> ``1e-4``)."""
+    """The default of one dotted field (``optim.lr`` -> ``1e-4``); a variant group's field that the default variant
+    lacks has its own variant's default (``loss.q_value_bound`` -> ``1.0``)."""
+    group, _, rest = key.partition(".")
+    if group in VARIANTS:
+        for choice in VARIANTS[group][1]:
+            values = variant_defaults(group, choice)
+            if rest in values:
+                return values[rest]
+        raise KeyError(key)
     node: Any = defaults()
     for part in key.split("."):
         node = node[part]
@@ -299,8 +321,9 @@ def default(key: str) -> Any:
 
 
 SCHEMA = "pe_rlhf_schema"  # the structured config's name in Hydra's ConfigStore (recipes/pe_rlhf/config.yaml names it)
-PROXY_Q = RecipeSchema(SCHEMA, defaults, PROFILES)  # PE-RLHF, HACO, HAIM-DRL
+# PE-RLHF, HACO, HAIM-DRL, PVP; the variant groups are open in Hydra's node (each file brings its variant's settings)
+PROXY_Q = RecipeSchema(SCHEMA, defaults, PROFILES, variant_groups=tuple(VARIANTS))
 
 
-__all__ = ["BACKENDS", "PROXY_Q", "RULES", "SCHEMA", "RecipeConfig", "default", "defaults", "rule_backend",
-           "rule_value_source"]
+__all__ = ["BACKENDS", "DISTURBANCES", "LOSSES", "PROXY_Q", "RULES", "SCHEMA", "VARIANTS", "RecipeConfig", "default",
+           "defaults", "rule_backend", "rule_value_source", "variant_defaults", "variant_rules"]

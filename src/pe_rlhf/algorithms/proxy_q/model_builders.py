@@ -31,14 +31,12 @@ def build_loss(cfg, actor) -> tuple[PERLHFLoss | ProxyValueLoss, ForeachSoftUpda
         c = cfg.loss
         loss = ProxyValueLoss(actor, make_qvalue(n, hidden=hidden, layer_norm=layer_norm),
                               q_value_bound=float(c.q_value_bound), gamma=float(c.gamma),
-                              num_qvalue_nets=int(c.num_qvalue_nets), target_noise=float(c.target_noise),
-                              target_noise_clip=float(c.target_noise_clip), policy_delay=int(c.policy_delay),
-                              bc_weight=float(c.bc_weight), mask_td_at_takeover_start=bool(c.mask_td_at_takeover_start),
-                              physics_labels=bool(c.physics_labels),
-                              preactivation_penalty=float(c.preactivation_penalty))
+                              target_noise=float(c.target_noise), policy_delay=int(c.policy_delay), bc_weight=float(c.bc_weight),
+                              mask_td_at_takeover_start=bool(c.mask_td_at_takeover_start))
         return loss, ForeachSoftUpdate(loss, tau=float(c.tau))
     target_entropy = cfg.loss.target_entropy
-    disturbance = make_qvalue(n, hidden=hidden) if cfg.disturbance.enabled else None
+    d = cfg.disturbance  # HAIM-DRL's group: its weight and critics only with enabled
+    disturbance = make_qvalue(n, hidden=hidden) if d.enabled else None
     loss = PERLHFLoss(
         actor, make_qvalue(n, hidden=hidden, layer_norm=layer_norm), make_qvalue(n, hidden=hidden), disturbance,
         num_qvalue_nets=int(cfg.loss.num_qvalue_nets),
@@ -48,10 +46,9 @@ def build_loss(cfg, actor) -> tuple[PERLHFLoss | ProxyValueLoss, ForeachSoftUpda
         num_intervention_qvalue_nets=int(cfg.loss.num_intervention_qvalue_nets),
         alpha_init=float(cfg.loss.alpha_init),
         target_entropy=target_entropy if target_entropy == "auto" else float(target_entropy), action_dim=2,
-        disturbance_weight=float(cfg.loss.disturbance_weight),
-        num_disturbance_qvalue_nets=int(cfg.loss.num_disturbance_qvalue_nets),
+        **({"disturbance_weight": float(d.weight), "num_disturbance_qvalue_nets": int(d.num_qvalue_nets)}
+           if d.enabled else {}),
         failure_target=str(cfg.loss.failure_target),
-        fused_critics=bool(cfg.loss.fused_critics),
     )
     return loss, ForeachSoftUpdate(loss, tau=float(cfg.loss.tau))
 

@@ -13,7 +13,7 @@ log). The batches, in phases:
 2. the Q-ensemble is fitted on the warm-up data, then frozen (the paper);
 3. online: the collector runs the actor inside ``InterventionTransform`` (mentor + physics +
    selector); ``optim.updates_per_batch`` PERLHFLoss updates follow every batch once
-   ``collector.learning_starts`` frames are in (with ``optim.async_updates``, at the same ratio in a
+   the first batch is in (with ``optim.async_updates``, at the same ratio in a
    learner thread beside acting: :mod:`pe_rlhf.algorithms.proxy_q.background_updates`; ``collector.realtime_hz``
    holds the env to a steady step rate for a person: :class:`~pe_rlhf.transforms.RealtimePacing`);
 4. (the run's) every ``eval.every_frames``: evaluation on the test split without the mentor; every
@@ -83,13 +83,11 @@ RESUME_REFUSED = {
     "loss.hidden": "the checkpoint's networks have the run's sizes",
     "loss.num_qvalue_nets": "the checkpoint's networks are the run's",
     "loss.num_intervention_qvalue_nets": "the checkpoint's networks are the run's",
-    "loss.num_disturbance_qvalue_nets": "the checkpoint's networks are the run's",
-    "loss.fused_critics": "the checkpoint's critics have the run's layout",
+    "disturbance.num_qvalue_nets": "the checkpoint's networks are the run's",
     "loss.alpha_init": "the checkpoint's alpha continues",
     "loss.target_entropy": "the checkpoint's loss holds the run's target entropy",
     "selector.num_members": "the checkpoint's ensemble has the run's size",
-    "selector.hidden": "the checkpoint's ensemble has the run's sizes",
-    "selector.enabled": "the checkpoint's modules are the run's",
+    "physics.enabled": "the checkpoint's modules are the run's",
     "disturbance.enabled": "the checkpoint's critics are the run's",
     "actor_selection": "a run picks its actor over the whole run",
     "checkpoint.every_frames": lambda was, now: ("0 turns the journal off, and with it the batches it holds"
@@ -121,9 +119,8 @@ class ProxyQLearner(Learner):
         self.optimizers = builders.build_optimizers(cfg, self.loss)
         self.replay = builders.build_replay_buffer(cfg, balanced=True)
         self.warmup_buffer = builders.build_replay_buffer(cfg)
-        fitted = cfg.selector.enabled and builders.value_is_fitted(cfg)  # an expert is frozen: never fitted
-        self.schedule = EnsembleSchedule(int(cfg.collector.warmup_steps), 0,
-                                         int(cfg.selector.warmup_fit_steps) if fitted else 0)
+        # an expert or a forecast is never fitted
+        self.schedule = EnsembleSchedule(int(cfg.collector.warmup_steps), 0, builders.ensemble_fit_steps(cfg))
         self.counters = Counters()
         # "ensemble": the checkpoint's name for the value source's module (a forecast has no parameters)
         modules = {"loss": self.loss, **({"ensemble": self.value_source} if self.value_source is not None else {})}
@@ -279,8 +276,8 @@ class ProxyQLearner(Learner):
 
     @property
     def learning(self) -> bool:
-        """Whether updates run: ``collector.learning_starts`` frames are in."""
-        return self.counters.frames >= int(self.cfg.collector.learning_starts)
+        """Whether updates run: from the first batch on (``collector.frames_per_batch`` frames are in)."""
+        return self.counters.frames >= int(self.cfg.collector.frames_per_batch)
 
     def row(self, m: dict[str, float]) -> dict[str, float]:
         """After the batch's updates: the latest losses, the collector's policy weights synced, the batch's row of
@@ -313,9 +310,9 @@ class ProxyQLearner(Learner):
         fit_steps = self.schedule.due(int(self.counters.frames)) if self.value_source is not None else 0
         if not fit_steps:
             return
-        fit_q_ensemble(self.value_source, self.warmup_buffer, steps=fit_steps, batch_size=int(cfg.selector.batch_size),
-                       gamma=float(cfg.loss.gamma), lr=float(cfg.selector.lr),
-                       target_noise=float(cfg.selector.target_noise), tau=float(cfg.selector.tau),
+        fit = builders.ENSEMBLE_FIT
+        fit_q_ensemble(self.value_source, self.warmup_buffer, steps=fit_steps, batch_size=fit["batch_size"],
+                       gamma=float(cfg.loss.gamma), lr=fit["lr"], target_noise=fit["target_noise"], tau=fit["tau"],
                        seed=int(cfg.seed))
         self.value_source.requires_grad_(False)
         if self.collector is not None:

@@ -22,7 +22,7 @@ sweep's evaluation-only cell is an evaluation row too); else the method the run 
 :data:`~pe_rlhf.algorithms.ALGORITHMS` display name (``PE-RLHF``, ``SAC-RS``, ...; a PE-RLHF run with the
 disturbance critic is ``PE-RLHF+disturbance``). Run folders from before that record: a baseline's
 ``final_eval.json`` / ``config.yaml`` ``method`` (``SAC-RS``, ``BC``, ...); else the proxy-Q recipe's physics /
-selector / disturbance switches (:func:`pe_rlhf.algorithms.proxy_q.config.method_name`: PE-RLHF, HACO, HAIM-DRL). A
+disturbance switches and its loss (:func:`pe_rlhf.algorithms.proxy_q.config.method_name`: PE-RLHF, HACO, HAIM-DRL, PVP). A
 mentor other than the professional is appended (``PE-RLHF (amateur)``).
 """
 
@@ -184,8 +184,9 @@ def infer_label(source: Source) -> str:
         from pe_rlhf.runtime.config_rules import ConfigError
         from pe_rlhf.algorithms.proxy_q.config import method_name
 
-        switches = OmegaConf.create({group: {"enabled": bool(_get(config, f"{group}.enabled", False))}
-                                     for group in ("physics", "selector", "disturbance")})
+        switches = OmegaConf.create({**{group: {"enabled": bool(_get(config, f"{group}.enabled", False))}
+                                        for group in ("physics", "disturbance")},
+                                     "loss": {"objective": str(_get(config, "loss.objective", "paper"))}})
         try:
             name = method_name(switches)
         except ConfigError as e:

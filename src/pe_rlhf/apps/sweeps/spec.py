@@ -11,7 +11,7 @@
     parameters:                          # optional axis: key -> values, crossed over the keys
       selector.epsilon_select: [0, 0.25, 0.5]
     variants:                            # optional axis: label -> overrides (crossed with parameters)
-      idm_only: [physics.use_mobil=false]
+      idm_only: [physics.model=idm]
     metrics: [success_rate, safety_violation]   # columns of summary.md (pe_rlhf.apps.sweeps.metrics.METRICS)
     resources: {num_cpus: 1}             # per cell (Ray task); torch runs that many threads
 
