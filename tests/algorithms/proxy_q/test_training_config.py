@@ -74,8 +74,8 @@ def test_every_field_has_a_validation_rule_its_default_passes():
     flat = leaves(defaults())
     for field, rule in RULES.items():
         assert rule(flat[field]) is None, (field, flat[field])
-    for group, (_, variants) in VARIANTS.items():  # every variant's fields, each with a rule its default passes
-        for choice in variants:
+    for group, spec in VARIANTS.items():  # every variant's fields, each with a rule its default passes
+        for choice in spec.classes:
             values, rules = variant_defaults(group, choice), variant_rules(group, choice)
             assert set(rules) == {f"{group}.{k}" for k in values}
             for name, value in values.items():
@@ -90,6 +90,9 @@ def test_a_variant_group_shows_its_variants_settings_and_switches_on_its_field()
     haim = load_config(overrides=["physics.enabled=false", "disturbance.enabled=true", "disturbance.weight=2"])
     assert list(haim.disturbance) == list(variant_defaults("disturbance", True)) and haim.disturbance.weight == 2
     assert list(load_config().disturbance) == ["enabled"]
+    assert list(load_config().selector) == ["value", "epsilon_select"]  # the forecast has no ensemble
+    ensemble = load_config(overrides=["selector.value=expert", "selector.num_members=2"])
+    assert list(ensemble.selector) == ["value", "epsilon_select", "num_members"] and ensemble.selector.num_members == 2
 
 
 def test_a_saved_config_from_before_the_settings_were_retired_still_loads(tmp_path):
@@ -177,7 +180,7 @@ def test_quick_profile_is_make_runs_ten_minute_budget():
 def test_smoke_profile_is_tiny():
     cfg = load_config(overrides=["profile=smoke"])
     assert cfg.collector.total_frames <= 500 and cfg.collector.warmup_steps <= 100
-    assert list(cfg.loss.hidden) == [32, 32] and cfg.selector.num_members == 2
+    assert list(cfg.loss.hidden) == [32, 32]
     assert cfg.eval.episodes == 1 and not cfg.eval.video  # filming is ~45% of a smoke run; its tests ask for it
     assert driving_config(cfg).horizon == 100
 
@@ -200,7 +203,7 @@ def test_every_profile_validates_for_both_methods(name):
 
 def test_cli_overrides_apply():
     cfg = load_config(overrides=["optim.lr=3e-4", "mentor.name=amateur", "loss.hidden=[128,128]",
-                                 "selector.num_members=3", "env.traffic_density=0.2",
+                                 "selector.value=warmup", "selector.num_members=3", "env.traffic_density=0.2",
                                  "mentor.kwargs.action_noise=0.2", "logger.out_dir=runs/x"])
     assert cfg.optim.lr == pytest.approx(3e-4)
     assert cfg.mentor.name == "amateur" and cfg.mentor.kwargs.action_noise == 0.2
@@ -333,7 +336,7 @@ def test_method_names():
     assert method_name(load_config()) == "PE-RLHF"
     haco = load_config(overrides=["physics.enabled=false"])
     assert method_name(haco) == "HACO"
-    assert method_name(load_config(overrides=["selector.num_members=1"])) == "PE-RLHF"  # w/o ensemble ablation
+    assert method_name(load_config(overrides=["selector.value=warmup", "selector.num_members=1"])) == "PE-RLHF"  # w/o ens.
     assert method_name(load_config(overrides=["physics.enabled=false", "disturbance.enabled=true"])) == "HAIM-DRL"
     assert method_name(load_config(overrides=["physics.enabled=false", "loss.objective=proxy_value"])) == "PVP"
     assert method_name(load_config(overrides=["disturbance.enabled=true"])) == "PE-RLHF+disturbance"
@@ -396,7 +399,7 @@ def test_configuration_reference_page_is_the_rules_own_table():
     page = (Path(__file__).resolve().parents[3] / "docs" / "guide" / "configuration.md").read_text()
     assert table in page, ("regenerate the table: python -c 'from pe_rlhf.algorithms.proxy_q.config import "
                            "reference_table; print(reference_table())'")
-    variant_fields = sum(len(variant_defaults(g, c)) for g, (_, vs) in VARIANTS.items() for c in vs)
+    variant_fields = sum(len(variant_defaults(g, c)) for g, spec in VARIANTS.items() for c in spec.classes)
     assert len(table.splitlines()) == len(RULES) + variant_fields + 2
     assert "| `optim.lr` | `0.0001` | must be a finite number > 0 |" in table
     assert "| `collector.warmup_policy` | `null` | a non-empty string, or null |" in table

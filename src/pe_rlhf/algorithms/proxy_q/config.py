@@ -135,32 +135,47 @@ def retire_settings(values: dict[str, Any]) -> dict[str, Any]:
 
 
 def complete_variants(cfg: DictConfig) -> None:
-    """Each variant group (:data:`~pe_rlhf.algorithms.proxy_q.config_schema.VARIANTS`: ``loss`` by ``objective``,
-    ``disturbance`` by ``enabled``) to exactly its chosen variant's settings, in its dataclass's order: a missing one
-    at its default; another variant's one dropped where it holds that variant's default (a recipe file shows its
-    default variant's settings, and ``loss.objective=proxy_value`` switches), refused where it does not (it would
-    do nothing). Raises :class:`ConfigError` naming the field."""
-    for group, (key, variants) in VARIANTS.items():
+    """Each variant group (:data:`~pe_rlhf.algorithms.proxy_q.config_schema.VARIANTS`: ``selector`` by ``value``,
+    ``loss`` by ``objective``, ``disturbance`` by ``enabled``) to exactly its chosen variant's settings, in its
+    dataclass's order: a missing one at its default; another variant's one dropped where it holds that variant's
+    default (a recipe file shows its default variant's settings, and ``loss.objective=proxy_value`` switches),
+    refused where it does not (it would do nothing). Raises :class:`ConfigError` naming the field."""
+    for group, spec in VARIANTS.items():
         node = OmegaConf.to_container(cfg[group]) if OmegaConf.select(cfg, group) is not None else {}
         if not isinstance(node, dict):
             raise invalid_value(group, node, "must be a group of settings")
-        choice = node.get(key, defaults()[group][key])
-        if not any(choice == c and type(choice) is type(c) for c in variants):
-            raise invalid_value(f"{group}.{key}", choice, f"allowed: {[str(c).lower() for c in variants]}")
-        own = variant_defaults(group, choice)
+        choice = node.get(spec.field, defaults()[group][spec.field])
+        variant = _variant(group, choice)
+        own = variant_defaults(group, variant)
         for name, value in node.items():
             if name in own:
                 continue
-            owners = [c for c in variants if c != choice and name in variant_defaults(group, c)]
+            owners = [v for v in spec.classes if v != variant and name in variant_defaults(group, v)]
             if not owners:
-                raise ConfigError(f"unknown config key '{group}.{name}'; the settings of {group}.{key}="
-                                  f"{str(choice).lower()}: {list(own)}", f"{group}.{name}")
+                raise ConfigError(f"unknown config key '{group}.{name}'; the settings of {group}.{spec.field}="
+                                  f"{_shown(choice)}: {list(own)}", f"{group}.{name}")
             if value != variant_defaults(group, owners[0])[name]:
-                raise invalid_value(f"{group}.{name}", value, f"belongs to {group}.{key}="
-                                    f"{str(owners[0]).lower()}, and this config has {group}.{key}={str(choice).lower()}")
+                raise invalid_value(f"{group}.{name}", value, f"belongs to the {group} group's {_shown(owners[0])} "
+                                    f"variant, and this config has {group}.{spec.field}={_shown(choice)}")
         with open_dict(cfg):
             cfg[group] = {name: node.get(name, value) for name, value in own.items()}
         OmegaConf.set_struct(cfg[group], True)
+
+
+def _variant(group: str, choice: Any) -> Any:
+    """The variant ``choice`` picks in ``group``, or :class:`ConfigError` naming the field and what is allowed."""
+    spec = VARIANTS[group]
+    try:
+        variant = spec.pick(choice)
+    except ValueError as err:
+        raise invalid_value(f"{group}.{spec.field}", choice, str(err).split("; ", 1)[-1]) from None
+    if not any(variant == v and type(variant) is type(v) for v in spec.classes):
+        raise invalid_value(f"{group}.{spec.field}", choice, f"allowed: {[_shown(v) for v in spec.classes]}")
+    return variant
+
+
+def _shown(value: Any) -> str:
+    return str(value).lower() if isinstance(value, bool) else str(value)
 
 
 def finish_config(cfg: DictConfig, overrides: Iterable[str] = (), *, apply_human_defaults: bool = True,
@@ -205,11 +220,11 @@ def reference_table() -> str:
     """
     rows = ["| field | default | allowed |", "|---|---|---|"]
     fields = [(f"`{field}`", rule, default(field)) for field, rule in RULES.items()]
-    for group, (key, variants) in VARIANTS.items():
-        for choice in variants:
-            values = variant_defaults(group, choice)
-            fields += [(f"`{field}` ({key}={str(choice).lower()})", rule, values[field.split(".", 1)[1]])
-                       for field, rule in variant_rules(group, choice).items()]
+    for group, spec in VARIANTS.items():
+        for variant in spec.classes:
+            values = variant_defaults(group, variant)
+            fields += [(f"`{field}` ({group}: {_shown(variant)})", rule, values[field.split(".", 1)[1]])
+                       for field, rule in variant_rules(group, variant).items()]
     for field, rule, default_value in fields:
         allowed = rule(_PROBE) or ("a non-empty string" + (", or null" if default_value is None else ""))
         shown = ("null" if default_value is None else str(default_value).lower() if isinstance(default_value, bool)
@@ -222,8 +237,8 @@ def validate_config(cfg: DictConfig) -> None:
     """Check every field (:data:`RULES`), the env (as a DrivingConfig), the mentor's kwargs, and the
     fields that constrain each other; raise :class:`ConfigError` at the first problem."""
     rules = dict(RULES)
-    for group, (key, _) in VARIANTS.items():
-        rules.update(variant_rules(group, OmegaConf.select(cfg, f"{group}.{key}")))
+    for group, spec in VARIANTS.items():
+        rules.update(variant_rules(group, _variant(group, OmegaConf.select(cfg, f"{group}.{spec.field}"))))
     for key in leaf_keys(OmegaConf.to_container(cfg)):
         if key not in rules and key not in OPEN_GROUPS:
             raise ConfigError(f"unknown config key {key!r}; known: {sorted(rules) + list(OPEN_GROUPS)}", key)

@@ -40,7 +40,6 @@ PROFILES: dict[str, dict[str, Any]] = {
     # filming it was ~45% of a smoke run's CPU time (cProfile, 2026-12-06); eval.video=true films it.
     "smoke": {
         "env": {"horizon": 100, "min_blocks": 2, "max_blocks": 2},
-        "selector": {"num_members": 2},
         "collector": {"total_frames": 300, "frames_per_batch": 50, "warmup_steps": 100},
         "replay_buffer": {"size": 1000, "batch_size": 32},
         "optim": {"updates_per_batch": 5},

@@ -19,7 +19,8 @@ from __future__ import annotations
 import dataclasses
 import importlib.util
 from dataclasses import dataclass, field
-from typing import Any, Optional
+from collections.abc import Callable
+from typing import Any, NamedTuple, Optional
 
 from pe_rlhf.modules.precision import PRECISIONS
 from pe_rlhf.objectives.perlhf import FAILURE_TARGETS
@@ -89,7 +90,8 @@ class PhysicsSettings:
 
 @dataclass
 class SelectorConfig:
-    """T_select: which of the mentor's and physics' actions a takeover executes (with ``physics.enabled``)."""
+    """T_select: which of the mentor's and physics' actions a takeover executes (with ``physics.enabled``), by the
+    physics forecast; ``selector.value=expert|warmup`` brings the Q-ensemble's setting."""
 
     # forecast (seconds until a crash or off road, from the vehicle model: docs/guide/shield.md) | expert (the
     # packaged SAC expert's critics) | expert:PATH (a Q-ensemble file or run folder) | warmup (a Q-ensemble fitted on
@@ -98,8 +100,22 @@ class SelectorConfig:
     # null: the value source's own (expert 1.5, the authors' code; warmup 0.5, the paper's table; forecast -0.5 s,
     # calibrated on train scenes: docs/results/claims); < 0: the mentor unless physics is valued -eps above
     epsilon_select: Optional[float] = knob(None, rule_optional(rule_number(meaning=EPSILON_SELECT_MEANING)))
-    # Q-ensemble value sources (expert, warmup): members; 1 = the "w/o ensemble" ablation
-    num_members: int = knob(5, rule_int(1))
+
+
+@dataclass
+class EnsembleSelectorConfig(SelectorConfig):
+    """``selector.value=expert|expert:PATH|warmup``: the selector values the two actions with a Q-ensemble."""
+
+    value: str = knob("warmup", rule_value_source)  # expert | expert:PATH | warmup (the paper's)
+    num_members: int = knob(5, rule_int(1))  # the ensemble's members; 1 = the "w/o ensemble" ablation
+
+
+def selector_variant(value: Any) -> str:
+    """The selector's variant for ``selector.value``: ``forecast``, or ``q_ensemble`` (expert, expert:PATH, warmup);
+    ValueError on a value that names neither."""
+    from pe_rlhf.algorithms.proxy_q.value_expert import parse_value_source
+
+    return "forecast" if parse_value_source(value)[0] == "forecast" else "q_ensemble"
 
 
 @dataclass
@@ -272,35 +288,48 @@ def _fields(schema: type, prefix: str = ""):
             yield f"{prefix}{f.name}", f
 
 
-_GROUPS = {cls.__name__: cls for cls in (MentorConfig, PhysicsSettings, SelectorConfig, CollectorConfig,
+_GROUPS = {cls.__name__: cls for cls in (MentorConfig, PhysicsSettings, SelectorConfig, EnsembleSelectorConfig,
+                                         CollectorConfig,
                                          ReplayBufferConfig, OptimConfig, PaperLossConfig, ProxyValueLossConfig,
                                          DisturbanceOff, DisturbanceConfig, LoggerConfig, EvalConfig,
                                          CheckpointConfig, ActorSelectionConfig)}
 
-# Groups whose settings depend on one of their fields: {group: (the field, {its value: the group's dataclass})}. A
-# config shows the chosen variant's settings only; the schema's (and Hydra's) node for them is open, and
+class VariantGroup(NamedTuple):
+    """A group whose settings depend on one of its fields: ``field``, ``classes`` (``{variant: the group's
+    dataclass}``) and ``pick`` (the variant a value of ``field`` selects; ValueError on a bad one)."""
+
+    field: str
+    classes: dict[Any, type]
+    pick: Callable[[Any], Any] = lambda value: value
+
+
+# A config shows the chosen variant's settings only; the schema's (and Hydra's) node for these groups is open, and
 # pe_rlhf.algorithms.proxy_q.config.complete_variants completes and checks it after composition.
-VARIANTS: dict[str, tuple[str, dict[Any, type]]] = {"loss": ("objective", LOSSES),
-                                                    "disturbance": ("enabled", DISTURBANCES)}
+VARIANTS: dict[str, VariantGroup] = {
+    "selector": VariantGroup("value", {"forecast": SelectorConfig, "q_ensemble": EnsembleSelectorConfig},
+                             selector_variant),
+    "loss": VariantGroup("objective", LOSSES),
+    "disturbance": VariantGroup("enabled", DISTURBANCES),
+}
 
 # {dotted field: rule}, every field but the open groups and the variant groups', in the schema's order.
 RULES: dict[str, Rule] = {name: f.metadata["rule"] for name, f in _fields(RecipeConfig)
                           if "rule" in f.metadata and name.split(".", 1)[0] not in VARIANTS}
 
 
-def variant_rules(group: str, choice: Any) -> dict[str, Rule]:
-    """``{dotted field: rule}`` of ``group``'s variant ``choice`` (``variant_rules("loss", "proxy_value")``)."""
-    return {name: f.metadata["rule"] for name, f in _fields(VARIANTS[group][1][choice], f"{group}.")}
+def variant_rules(group: str, variant: Any) -> dict[str, Rule]:
+    """``{dotted field: rule}`` of ``group``'s ``variant`` (``variant_rules("loss", "proxy_value")``)."""
+    return {name: f.metadata["rule"] for name, f in _fields(VARIANTS[group].classes[variant], f"{group}.")}
 
 
-def variant_defaults(group: str, choice: Any) -> dict[str, Any]:
-    """The defaults of ``group``'s variant ``choice`` as a plain dict (a new copy each call)."""
-    return dataclasses.asdict(VARIANTS[group][1][choice]())
+def variant_defaults(group: str, variant: Any) -> dict[str, Any]:
+    """The defaults of ``group``'s ``variant`` as a plain dict (a new copy each call)."""
+    return dataclasses.asdict(VARIANTS[group].classes[variant]())
 
 
 def defaults() -> dict[str, Any]:
     """The schema's defaults as a plain nested dict (a new copy each call): each variant group at its default
-    variant (``loss.objective=paper``, ``disturbance.enabled=false``)."""
+    variant (``selector.value=forecast``, ``loss.objective=paper``, ``disturbance.enabled=false``)."""
     return dataclasses.asdict(RecipeConfig())
 
 
@@ -309,8 +338,8 @@ def default(key: str) -> Any:
     lacks has its own variant's default (``loss.q_value_bound`` -> ``1.0``)."""
     group, _, rest = key.partition(".")
     if group in VARIANTS:
-        for choice in VARIANTS[group][1]:
-            values = variant_defaults(group, choice)
+        for variant in VARIANTS[group].classes:
+            values = variant_defaults(group, variant)
             if rest in values:
                 return values[rest]
         raise KeyError(key)
@@ -325,5 +354,6 @@ SCHEMA = "pe_rlhf_schema"  # the structured config's name in Hydra's ConfigStore
 PROXY_Q = RecipeSchema(SCHEMA, defaults, PROFILES, variant_groups=tuple(VARIANTS))
 
 
-__all__ = ["BACKENDS", "DISTURBANCES", "LOSSES", "PROXY_Q", "RULES", "SCHEMA", "VARIANTS", "RecipeConfig", "default",
-           "defaults", "rule_backend", "rule_value_source", "variant_defaults", "variant_rules"]
+__all__ = ["BACKENDS", "DISTURBANCES", "LOSSES", "PROXY_Q", "RULES", "SCHEMA", "VARIANTS", "RecipeConfig", "VariantGroup",
+           "default", "defaults", "rule_backend", "rule_value_source", "selector_variant", "variant_defaults",
+           "variant_rules"]
