@@ -106,7 +106,8 @@ RETIRED = ("selector.enabled", "selector.variance_threshold", "selector.switch_m
            "loss.preactivation_penalty", "loss.fused_critics", "loss.target_noise_clip", "collector.learning_starts",
            "collector.exploration")
 # ... and those that moved: {old: new}
-MOVED = {"loss.disturbance_weight": "disturbance.weight", "loss.num_disturbance_qvalue_nets": "disturbance.num_qvalue_nets"}
+MOVED = {"loss.disturbance_weight": "disturbance.weight",
+         "loss.num_disturbance_qvalue_nets": "disturbance.num_qvalue_nets"}
 
 
 def retire_settings(values: dict[str, Any]) -> dict[str, Any]:

@@ -354,6 +354,7 @@ SCHEMA = "pe_rlhf_schema"  # the structured config's name in Hydra's ConfigStore
 PROXY_Q = RecipeSchema(SCHEMA, defaults, PROFILES, variant_groups=tuple(VARIANTS))
 
 
-__all__ = ["BACKENDS", "DISTURBANCES", "LOSSES", "PROXY_Q", "RULES", "SCHEMA", "VARIANTS", "RecipeConfig", "VariantGroup",
+__all__ = ["BACKENDS", "DISTURBANCES", "LOSSES", "PROXY_Q", "RULES", "SCHEMA", "VARIANTS", "RecipeConfig",
+           "VariantGroup",
            "default", "defaults", "rule_backend", "rule_value_source", "selector_variant", "variant_defaults",
            "variant_rules"]
