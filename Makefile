@@ -20,7 +20,7 @@ venv: $(STAMP)
 # Main job on the embedded default: PE-RLHF with the simulated professional mentor on a ~10-minute
 # budget (profile=quick), then the test-split table against IDM-MOBIL. Outputs in runs/pe-rlhf-<time>/.
 run: $(STAMP)
-	SDL_VIDEODRIVER=dummy $(PY) recipes/pe_rlhf/train.py profile=quick --compare idm-mobil
+	SDL_VIDEODRIVER=dummy $(PY) recipes/pe_rlhf/train.py profile=quick --compare idm-mobil --shield
 
 # A worker per core (pytest-xdist), whole test files per worker so that each module fixture runs once (loadgroup's
 # xdist_group does not group under pytest 9: it renames `_nodeid`); then the tests that time themselves, alone,

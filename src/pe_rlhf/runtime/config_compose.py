@@ -48,6 +48,7 @@ HYDRA_SETTINGS = {"run": {"dir": "."}, "sweep": {"dir": ".", "subdir": "."}, "ou
                   "job": {"chdir": False},
                   "help": {"footer": "Recipe flags: --out DIR (the run folder; default runs/<method>-<time>), "
                                      "--compare POLICY (also evaluate e.g. idm-mobil on the same test scenes), "
+                                     "--shield [SECONDS] (also evaluate the trained actor under the runtime shield), "
                                      "--resume DIR [key=value ...] (continue the run in DIR).\n"
                                      "Powered by Hydra (https://hydra.cc); --hydra-help for Hydra's own flags."}}
 HYDRA_DEFAULTS_LIST = [{"override hydra/job_logging": "none"}, {"override hydra/hydra_logging": "none"},

@@ -27,6 +27,7 @@ disk, a read-only run folder, a run folder another run holds, a non-finite loss,
 
 from __future__ import annotations
 
+import argparse
 import os
 import sys
 from collections.abc import Callable
@@ -36,9 +37,10 @@ from pathlib import Path
 from omegaconf import DictConfig
 
 from pe_rlhf.errors import DEBUG_ENV_VAR, OneLineErrorParser, debug_requested, fail
-from pe_rlhf.evaluation import evaluate, make_policy, print_summary, write_json
+from pe_rlhf.evaluation import Policy, evaluate, make_policy, print_summary, write_json
 from pe_rlhf.runtime.config_compose import RecipeSchema, store_recipe_configs
 from pe_rlhf.runtime.config_rules import ConfigError
+from pe_rlhf.transforms.shield import DEFAULT_THRESHOLD as SHIELD_THRESHOLD  # --shield's default
 
 # Hydra's own flags a recipe passes on to @hydra.main (an unknown flag is an error here, in one line).
 HYDRA_FLAGS = ("--cfg", "-c", "--help", "-h", "--hydra-help", "--info", "-i", "--resolve", "--package", "-p",
@@ -58,6 +60,7 @@ class RunOptions:
     out: str | None = None
     compare: str | None = None
     resume: str | None = None
+    shield: float | None = None  # [s]: also evaluate the trained actor under the runtime shield
 
 
 _SCRIPT_OPTIONS = RunOptions()  # what run_script parsed, for the @hydra.main function it calls
@@ -98,6 +101,10 @@ def option_parser(description: str | None = None, prog: str | None = None) -> Re
                         help="also evaluate a registered policy (e.g. idm-mobil) on the same test scenes and "
                              "print both in the final table")
     parser.add_argument("--resume", default=None, metavar="DIR", help="continue the run in DIR")
+    parser.add_argument("--shield", nargs="?", type=_shield_threshold, const=SHIELD_THRESHOLD, default=None,
+                        metavar="SECONDS",
+                        help="also evaluate the trained actor under the runtime safety shield (threshold, default "
+                             "0.5 s: docs/guide/shield.md) on the same scenes, a row of the final table")
     parser.add_argument("--debug", action="store_true",
                         help="show the traceback of an error instead of one line (as PE_RLHF_DEBUG=1)")
     return parser
@@ -106,6 +113,9 @@ def option_parser(description: str | None = None, prog: str | None = None) -> Re
 def parse_command_line(argv: list[str], description: str | None = None) -> tuple[RunOptions, list[str]]:
     """``(options, the rest)``: the rest is Hydra's (overrides and its flags); an unknown flag fails in one line."""
     parser = option_parser(description)
+    # a bare --shield before an override (--shield profile=smoke): the default threshold, not the override's text
+    argv = [f"--shield={SHIELD_THRESHOLD}" if a == "--shield" and (i + 1 == len(argv) or not _is_number(argv[i + 1]))
+            else a for i, a in enumerate(argv)]
     args, rest = parser.parse_known_args(argv)
     unknown = [a for a in rest if a.startswith("-") and a.split("=", 1)[0] not in HYDRA_FLAGS
                and not _is_number(a)]
@@ -115,7 +125,17 @@ def parse_command_line(argv: list[str], description: str | None = None) -> tuple
         os.environ[DEBUG_ENV_VAR] = "1"
     if args.compare and args.compare not in registered_policies():  # fail now, not after training
         parser.error(f"--compare {args.compare!r}: allowed: {sorted(registered_policies())}")
-    return RunOptions(args.out, args.compare, args.resume), rest
+    return RunOptions(args.out, args.compare, args.resume, args.shield), rest
+
+
+def _shield_threshold(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = -1.0
+    if not value >= 0 or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"{text!r}: a threshold in seconds >= 0 (e.g. 0.5)")
+    return value
 
 
 def _is_number(text: str) -> bool:
@@ -174,18 +194,28 @@ def hydra_task(cfg: DictConfig, *, finish: Callable[[DictConfig, list[str]], Dic
         fail_in_one_line(e)
 
 
-def report_final(out: Path, name: str, final: dict, compare: str | None, cfg) -> None:
-    """Print the final table (with ``compare``, a reference policy on the same scenes, saved as
-    ``reference_<policy>.json``) and where the outputs are; shared by every recipe's entry point."""
+def report_final(out: Path, name: str, final: dict, cfg, options: RunOptions = RunOptions(),
+                 policy: Callable[[], Policy] | None = None) -> None:
+    """Print the final table and where the outputs are; shared by every recipe's entry point. With
+    ``options.compare``, a reference policy on the same scenes (saved as ``reference_<policy>.json``); with
+    ``options.shield``, the trained actor (``policy()``) under the runtime shield on them too (saved as
+    ``shielded_eval.json``, with the share of steps the shield drove)."""
     rows = [(name, final)]
+    if options.shield is not None and policy is not None:
+        shielded = evaluate_shielded(policy(), float(options.shield), cfg, name=f"{name} shielded")
+        write_json(out / SHIELDED_EVAL, shielded)
+        rows.append((f"{name} shielded", shielded))
     picking = final.get("actor_selection")
     if picking is not None:  # the last actor's row above the picked one's
         rows.insert(0, ("last", final["last_actor"]))
-    if compare:
-        reference = evaluate_reference(compare, cfg)
-        write_json(out / f"reference_{compare}.json", reference)
-        rows.insert(0, (compare, reference))
+    if options.compare:
+        reference = evaluate_reference(options.compare, cfg)
+        write_json(out / f"reference_{options.compare}.json", reference)
+        rows.insert(0, (options.compare, reference))
     print_summary(rows)
+    if options.shield is not None and policy is not None:
+        print(f"{name} shielded: the shield drove {shielded['override_share']:.3f} of the steps (threshold "
+              f"{float(options.shield):g} s, a decision {shielded['decision_latency_ms']['mean']:.1f} ms)")
     if picking is not None:
         step, last = picking["picked_step"], max(map(int, picking["scores"]))
         score = picking["scores"][str(step)]
@@ -201,6 +231,21 @@ def registered_policies() -> list[str]:
     from pe_rlhf.evaluation import POLICY_FACTORIES
 
     return list(POLICY_FACTORIES)
+
+
+SHIELDED_EVAL = "shielded_eval.json"
+
+
+def evaluate_shielded(policy: Policy, threshold: float, cfg, name: str) -> dict:
+    """``policy`` under :class:`~pe_rlhf.wrappers.SafetyShieldWrapper` (``threshold`` seconds) on the final
+    evaluation's scenes (``eval.split``, ``eval.episodes``)."""
+    from pe_rlhf.envs import scene_seeds
+    from pe_rlhf.runtime.config import driving_config
+    from pe_rlhf.wrappers import SafetyShieldWrapper
+
+    seeds = scene_seeds(str(cfg.eval.split))[: int(cfg.eval.episodes)]
+    return evaluate(policy, seeds, driving_config(cfg), progress=False, name=name,
+                    wrap_env=lambda env: SafetyShieldWrapper(env, threshold)).to_dict()
 
 
 def evaluate_reference(policy_name: str, cfg, episodes: int | None = None) -> dict:

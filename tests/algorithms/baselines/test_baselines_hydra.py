@@ -47,7 +47,7 @@ def test_every_field_has_a_default_and_a_rule_in_the_schema(method):
 def test_each_family_composes_its_own_profiles_in_one_process():
     """``profile`` is one config group; each composition registers the profiles of the schema it composes."""
     assert load_baseline_config("sac_rs", overrides=["profile=smoke"]).collector.total_frames == 300
-    assert load_config(overrides=["profile=smoke"]).selector.num_members == 2  # the PE-RLHF recipe's smoke
+    assert list(load_config(overrides=["profile=smoke"]).loss.hidden) == [32, 32]  # the PE-RLHF recipe's smoke
     assert load_baseline_config("bc", overrides=["profile=smoke"]).optim.updates == 100
     assert load_config(overrides=["profile=quick"]).collector.total_frames == 9000
     with pytest.raises(ConfigError, match=r"^profile='quick' is invalid: allowed: \['paper', 'cpu', 'smoke'\]"):

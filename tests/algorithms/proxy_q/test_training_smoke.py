@@ -11,7 +11,7 @@ from _scripts import load_pe_rlhf_recipe
 
 from pe_rlhf.durable import load_tensors
 
-SMOKE_RUN = ["profile=smoke", "eval.video=true", "--compare", "idm-mobil"]
+SMOKE_RUN = ["profile=smoke", "eval.video=true", "--compare", "idm-mobil", "--shield"]
 
 
 @pytest.fixture(scope="module")
@@ -50,6 +50,9 @@ def test_smoke_run_writes_every_output(smoke_run):
     assert final["training"]["frames"] == 300
     reference = json.load(open(tmp_path / "reference_idm-mobil.json"))  # --compare: same scenes, other policy
     assert reference["policy"] == "idm-mobil" and reference["seeds"] == saved["seeds"]
+    shielded = json.load(open(tmp_path / "shielded_eval.json"))  # --shield: the trained actor under the shield
+    assert shielded["seeds"] == saved["seeds"] and 0.0 <= shielded["override_share"] <= 1.0
+    assert shielded["decision_latency_ms"]["mean"] > 0
     assert 1 <= final["video"]["steps"] <= 100 and final["video"]["path"].endswith("test_episode.gif")
     # the trained agent evaluates from its run folder, reproducing the recipe's final evaluation
     from pe_rlhf.apps.cli import main as cli
@@ -59,6 +62,22 @@ def test_smoke_run_writes_every_output(smoke_run):
                 "--config-override", "max_blocks=2", "--json", str(tmp_path / "again.json")]) == 0
     again = json.load(open(tmp_path / "again.json"))
     assert again["episodic_return"]["mean"] == saved["episodic_return"]["mean"]
+
+
+@pytest.mark.parametrize("argv, threshold", [([], None), (["--shield"], 0.5), (["--shield", "1.5"], 1.5)])
+def test_the_shield_flag_takes_an_optional_threshold(argv, threshold):
+    from pe_rlhf.runtime.recipe import parse_command_line
+
+    options, rest = parse_command_line([*argv, "profile=smoke"])
+    assert options.shield == threshold and rest == ["profile=smoke"]
+
+
+def test_a_bad_shield_threshold_fails_in_one_line(capsys):
+    from pe_rlhf.runtime.recipe import parse_command_line
+
+    with pytest.raises(SystemExit) as exit_info:
+        parse_command_line(["--shield=-1", "profile=smoke"])
+    assert exit_info.value.code == 2 and "a threshold in seconds >= 0" in capsys.readouterr().err
 
 
 def test_unknown_compare_policy_fails_before_training(tmp_path, capsys):

@@ -39,7 +39,8 @@ from pe_rlhf.algorithms.baselines.config import (
 )
 from pe_rlhf.algorithms.baselines.loop import train_baseline
 from pe_rlhf.algorithms.baselines.plots import plot_baseline_curves
-from pe_rlhf.evaluation import write_json
+from pe_rlhf.algorithms.proxy_q.trained_policy import load_run_actor
+from pe_rlhf.evaluation import TorchRLPolicyAdapter, write_json
 from pe_rlhf.runtime import recipe
 from pe_rlhf.runtime.config import save_config, to_container
 from pe_rlhf.runtime.metrics_logger import CSV_NAME, MetricsLogger
@@ -108,5 +109,5 @@ def _run_in(out: Path, method: str, cfg: DictConfig, options: RunOptions) -> dic
     if lg.csv:
         plot_baseline_curves(out / CSV_NAME, out, cfg.constraint.cost_limit if "constraint" in cfg else None,
                              steps_are_updates=METHODS[method].family == "offline")
-    report_final(out, name, final, options.compare, cfg)
+    report_final(out, name, final, cfg, options, policy=lambda: TorchRLPolicyAdapter(load_run_actor(out)))
     return final

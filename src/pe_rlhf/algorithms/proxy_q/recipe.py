@@ -27,7 +27,7 @@ from pathlib import Path
 
 from omegaconf import DictConfig
 
-from pe_rlhf.evaluation import write_json
+from pe_rlhf.evaluation import TorchRLPolicyAdapter, write_json
 from pe_rlhf.runtime import recipe
 from pe_rlhf.runtime.config import save_config, to_container
 from pe_rlhf.runtime.metrics_logger import MetricsLogger
@@ -39,6 +39,7 @@ from pe_rlhf.runtime.run_folder import hold_run_folder
 from pe_rlhf.runtime.world import obs_dim
 from pe_rlhf.algorithms.proxy_q.config import algorithm_name, finish_config, load_config, method_name
 from pe_rlhf.algorithms.proxy_q.config_schema import PROXY_Q
+from pe_rlhf.algorithms.proxy_q.trained_policy import load_run_actor
 from pe_rlhf.algorithms.proxy_q.trainer import RESUME_REFUSED
 
 # A recipe script's training loop: loop(cfg, out, logger, resume) -> the final evaluation (final_eval.json's dict).
@@ -119,5 +120,5 @@ def _run_in(out: Path, cfg: DictConfig, options: RunOptions, method: str, loop: 
         final = loop(cfg, out, logger, resume)
     write_json(out / "final_eval.json", final)
     plot_learning_curves(out / "metrics.csv", out, warmup_steps=int(cfg.collector.warmup_steps))
-    report_final(out, method, final, options.compare, cfg)
+    report_final(out, method, final, cfg, options, policy=lambda: TorchRLPolicyAdapter(load_run_actor(out)))
     return final
