@@ -167,13 +167,13 @@ def test_every_profile_validates_for_both_methods(name):
 def test_cli_overrides_apply():
     cfg = load_config(overrides=["optim.lr=3e-4", "mentor.name=amateur", "loss.hidden=[128,128]",
                                  "selector.variance_threshold=2.5", "env.traffic_density=0.2",
-                                 "mentor.kwargs.action_noise=0.2", "logger.out_dir=runs/x"])
+                                 "mentor.kwargs.action_noise=0.2", "logger.backends=[csv,tensorboard]"])
     assert cfg.optim.lr == pytest.approx(3e-4)
     assert cfg.mentor.name == "amateur" and cfg.mentor.kwargs.action_noise == 0.2
     assert list(cfg.loss.hidden) == [128, 128] and cfg.selector.variance_threshold == 2.5
     assert driving_config(cfg).traffic_density == 0.2
     assert driving_config(cfg, split="test").split == "test"
-    assert cfg.logger.out_dir == "runs/x"
+    assert list(cfg.logger.backends) == ["csv", "tensorboard"]
 
 
 @pytest.mark.parametrize("override, named", [("optim.lrr=1", "optim.lrr"), ("optimizer.lr=1", "optimizer"),
@@ -201,7 +201,6 @@ INVALID = [
     ("mentor.name", "expert"),
     ("selector.warmup_selection", "sometimes"),
     ("optim.threads", "0"),
-    ("mentor.seed", "1.5"),
     ("mentor.kwargs.skill", "3"),
     ("physics.use_idm", "maybe"),
     ("selector.epsilon_select", "nan"),
@@ -234,7 +233,9 @@ INVALID = [
     ("disturbance.threshold", "0"),
     ("disturbance.horizon", "-2"),
     ("disturbance.follower_range", "nan"),
-    ("logger.wandb_mode", "cloud"),
+    ("logger.backends", "[csv,neptune]"),
+    ("logger.backends", "[wandb]"),
+    ("logger.project", "' '"),
     ("logger.log_every", "0"),
     ("eval.episodes", "0"),
     ("eval.split", "val"),
