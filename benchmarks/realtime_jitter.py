@@ -64,7 +64,7 @@ def run_mode(mode: str, args) -> dict:
     try:
         with tempfile.TemporaryDirectory() as out:
             started = time.perf_counter()
-            with MetricsLogger(out, csv=True, config=to_container(cfg)) as logger:
+            with MetricsLogger(out, config=to_container(cfg)) as logger:
                 final = train(cfg, Path(out), logger)
             wall = time.perf_counter() - started
             with open(Path(out) / "metrics.csv") as f:

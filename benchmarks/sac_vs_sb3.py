@@ -136,7 +136,7 @@ def run_ours(cfg, seed: int, sim: SimTimer) -> dict:
     L, end = int(cfg.collector.learning_starts), int(cfg.collector.total_frames)
     cfg.seed = seed
     marks = {}
-    with tempfile.TemporaryDirectory() as tmp, MetricsLogger(tmp, csv=True) as logger:
+    with tempfile.TemporaryDirectory() as tmp, MetricsLogger(tmp) as logger:
         torch.manual_seed(seed)  # as train_baseline does
         run = Run(cfg, BaselineLearner(cfg, Path(tmp)), logger, None, total=end, eval_every=0, checkpoint_every=0)
         after_batch = run.after_batch

@@ -10,7 +10,7 @@ frozen expert, the packaged one by default), as a PE-RLHF run would start its on
 
 For each run folder (PE-RLHF recipe; its ``config.yaml`` and the Q-ensemble in its newest checkpoint):
 obstacle-blind IDM-MOBIL drives the train scenes as the agent, under the run's own mentor (its
-``mentor.name`` / ``mentor.seed``), physics policy (its ``physics.*`` flags) and selector (``epsilon_select``),
+``mentor.name``, seeded from its ``seed``), physics policy (its ``physics.*`` flags) and selector (``epsilon_select``),
 so the states are those a PE-RLHF takeover meets. At every ``--every``-th takeover step both candidates
 are tried on copies of the simulator (and of the mentor or physics policy): the candidate's action, then
 its own driver for the rest of ``--hold`` steps (a takeover lasts at least 10), then IDM-MOBIL that sees

@@ -33,7 +33,7 @@ def run_seed(seed: int, out: Path, overrides: list[str]) -> float:
     """Train one seed (skipped when its run folder already holds a final evaluation); wall seconds."""
     if (out / "final_eval.json").exists():
         return float("nan")
-    cmd = [sys.executable, str(RECIPE), "profile=cpu", f"seed={seed}", f"mentor.seed={seed}", *overrides,
+    cmd = [sys.executable, str(RECIPE), "profile=cpu", f"seed={seed}", *overrides,
            "--out", str(out)]
     if (out / "checkpoints").exists():
         cmd = [sys.executable, str(RECIPE), "--resume", str(out)]

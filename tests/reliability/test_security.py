@@ -167,24 +167,29 @@ def test_the_network_guard_blocks_remote_hosts(no_network):
     no_network.clear()  # the attempt was the point of this test
 
 
-def test_wandb_defaults_to_offline():
-    import inspect
-
-    from pe_rlhf.runtime.metrics_logger import MetricsLogger
+def test_wandb_defaults_to_offline(monkeypatch):
+    """wandb is off unless logger.backends names it, and its mode is wandb's own $WANDB_MODE, offline when unset."""
     from pe_rlhf.algorithms.proxy_q.config_schema import defaults
+    from pe_rlhf.runtime.metrics_logger import wandb_mode
 
-    assert defaults()["logger"]["wandb"] is False and defaults()["logger"]["wandb_mode"] == "offline"
-    assert inspect.signature(MetricsLogger).parameters["wandb_mode"].default == "offline"
+    assert defaults()["logger"]["backends"] == ["csv"]
+    monkeypatch.delenv("WANDB_MODE", raising=False)
+    assert wandb_mode() == "offline"
+    monkeypatch.setenv("WANDB_MODE", "")
+    assert wandb_mode() == "offline"
+    monkeypatch.setenv("WANDB_MODE", "online")  # a user's own choice
+    assert wandb_mode() == "online"
 
 
 def test_wandb_offline_run_stays_on_this_machine(tmp_path, monkeypatch, no_network):
-    """A run with ``logger.wandb=true`` and the default mode writes its files locally under the
+    """A run with ``logger.backends=[csv,wandb]`` and no ``$WANDB_MODE`` writes its files locally under the
     network guard (wandb's own service process talks to this one over loopback only)."""
     pytest.importorskip("wandb")
     from pe_rlhf.runtime.metrics_logger import MetricsLogger
 
     monkeypatch.setenv("WANDB_SILENT", "true")
-    with MetricsLogger(tmp_path, wandb=True, config={"lr": 1e-4}) as logger:
+    monkeypatch.delenv("WANDB_MODE", raising=False)
+    with MetricsLogger(tmp_path, backends=["csv", "wandb"], config={"lr": 1e-4}) as logger:
         logger.log(1, {"train/takeover_rate": 0.5})
         assert logger.wandb_run.offline
     assert list((tmp_path / "wandb").glob("offline-run-*/run-*.wandb"))
@@ -201,7 +206,7 @@ def guarded(host, *args, **kwargs):
     return lookup(host, *args, **kwargs)
 socket.getaddrinfo = guarded
 from pe_rlhf.runtime.metrics_logger import MetricsLogger
-with MetricsLogger(Path(tempfile.mkdtemp()), wandb=True, config={"lr": 1e-4}) as logger:
+with MetricsLogger(Path(tempfile.mkdtemp()), backends=["csv", "wandb"], config={"lr": 1e-4}) as logger:
     logger.log(1, {"train/takeover_rate": 0.5})
 from wandb.analytics.opentelemetry import opentelemetry_proxy
 proxy = opentelemetry_proxy.get_open_telemetry_proxy()
@@ -220,7 +225,7 @@ def test_wandb_offline_run_sends_no_telemetry(tmp_path):
     import subprocess
     import sys
 
-    env = {k: v for k, v in os.environ.items() if k != "WANDB_ERROR_REPORTING"}
+    env = {k: v for k, v in os.environ.items() if k not in ("WANDB_ERROR_REPORTING", "WANDB_MODE")}
     env["WANDB_SILENT"] = "true"
     done = subprocess.run([sys.executable, "-c", TELEMETRY_PROBE], env=env, capture_output=True, text=True,
                           timeout=120, cwd=tmp_path)

@@ -52,7 +52,8 @@ def test_state_round_trip_and_summary():
 
 
 def test_test_scenes_are_refused():
-    with pytest.raises(ValueError, match=r"actor_selection.split='test'.*train scenes only.*allowed: 'train'"):
+    refused = r"ActorSelection\(split='test'\): the actor is picked on train scenes only.*allowed: 'train'"
+    with pytest.raises(ValueError, match=refused):
         ActorSelection(_actor(0.0), every=10, episodes=20, split="test")
 
 

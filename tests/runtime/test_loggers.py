@@ -96,7 +96,7 @@ def test_wandb_and_tensorboard_receive_scalars_and_the_test_episode_video(tmp_pa
     video = record_episode_gif(make_policy("idm-mobil", 0), None, 1000, tmp_path / "episode.gif", max_steps=5,
                                keep_video=True)["video"]
     assert video.dtype == np.uint8 and video.shape == (6, 338 + CAPTION_HEIGHT, 600, 3)  # the GIF's captioned frames
-    with MetricsLogger(tmp_path, wandb=True, tensorboard=True, config={"lr": 1e-4}) as logger:
+    with MetricsLogger(tmp_path, backends=["csv", "wandb", "tensorboard"], config={"lr": 1e-4}) as logger:
         logger.log(1, {"train/takeover_rate": 0.5, "loss/qvalue": 2.0})
         logger.log(2, {"train/takeover_rate": 0.25})
         with warnings.catch_warnings():
@@ -115,10 +115,10 @@ def test_wandb_and_tensorboard_receive_scalars_and_the_test_episode_video(tmp_pa
 
 def test_tensorboard_resume_purges_the_replayed_steps(tmp_path):
     pytest.importorskip("tensorboard")
-    with MetricsLogger(tmp_path, tensorboard=True) as logger:
+    with MetricsLogger(tmp_path, backends=["csv", "tensorboard"]) as logger:
         for step in (1, 2, 3, 4):
             logger.log(step, {"train/takeover_rate": step / 10})
-    with MetricsLogger(tmp_path, tensorboard=True, resume=True) as logger:
+    with MetricsLogger(tmp_path, backends=["csv", "tensorboard"], resume=True) as logger:
         assert logger.truncate_after(3) == 2
         logger.log(3, {"train/takeover_rate": 0.9})
     events = _tensorboard_events(tmp_path / "tensorboard")
@@ -134,7 +134,7 @@ def test_mlflow_receives_scalars_and_the_config(tmp_path, monkeypatch):
     monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)  # the run folder's own file store
     monkeypatch.setenv("MLFLOW_ALLOW_FILE_STORE", "true")
     out = tmp_path / "run-1"
-    with MetricsLogger(out, mlflow=True, config={"optim": {"lr": 1e-4}, "seed": 0}) as logger:
+    with MetricsLogger(out, backends=["csv", "mlflow"], config={"optim": {"lr": 1e-4}, "seed": 0}) as logger:
         assert isinstance(logger.loggers["mlflow"], MLFlowLogger)
         logger.log(1, {"train/takeover_rate": 0.5})
         logger.log(2, {"train/takeover_rate": 0.25})

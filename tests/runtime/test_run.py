@@ -266,8 +266,9 @@ def test_resume_refuses_to_switch_actor_selection_midway(tmp_path, picking_befor
         then(cut, SwitchingLearner(total=300, switch_at=100)).train(cut, resume=True)
 
 
-def test_actor_selection_refuses_test_scenes(tmp_path):
+def test_actor_selection_picks_on_train_scenes(tmp_path):
+    """The config has no split to give (issue 43): a run picks its actor on the first train scenes, always."""
     cfg = _cfg()
-    cfg.actor_selection = SimpleNamespace(every_frames=50, episodes=1, split="test")
-    with pytest.raises(ValueError, match="train scenes only"):
-        Run(cfg, RegressionLearner(total=50), ListLogger(), None, total=50, eval_every=0, checkpoint_every=0)
+    cfg.actor_selection = SimpleNamespace(every_frames=50, episodes=3)
+    run = Run(cfg, RegressionLearner(total=50), ListLogger(), None, total=50, eval_every=0, checkpoint_every=0)
+    assert (run.selection.split, run.selection.episodes, run.selection.every) == ("train", 3, 50)

@@ -118,7 +118,7 @@ def test_wandb_offline_run_directory(tmp_path, monkeypatch):
     monkeypatch.setenv("WANDB_SILENT", "true")
     monkeypatch.setenv("WANDB_API_KEY", "")  # no credentials, and a closed local port as the server
     monkeypatch.setenv("WANDB_BASE_URL", "http://127.0.0.1:9")
-    with MetricsLogger(tmp_path, wandb=True, wandb_mode="offline", config={"lr": 1e-4}) as logger:
+    with MetricsLogger(tmp_path, backends=["csv", "wandb"], config={"lr": 1e-4}) as logger:
         with pytest.warns(RuntimeWarning, match="loss/qvalue"):
             logger.log(1, {"train/takeover_rate": 0.5, "loss/qvalue": float("nan")})
         logger.log(2, {"train/takeover_rate": 0.25})
@@ -132,7 +132,7 @@ def test_wandb_offline_run_directory(tmp_path, monkeypatch):
 def test_tensorboard_missing_is_a_clear_error(tmp_path, monkeypatch):
     monkeypatch.setitem(sys.modules, "torch.utils.tensorboard", None)  # as if tensorboard were not installed
     with pytest.raises(ImportError, match="pip install tensorboard"):
-        MetricsLogger(tmp_path / "tb", tensorboard=True)
+        MetricsLogger(tmp_path / "tb", backends=["csv", "tensorboard"])
     assert not (tmp_path / "tb" / "metrics.csv").exists()  # failed before touching anything
 
 

@@ -42,11 +42,6 @@ class Algorithm:
     def trains(self) -> bool:
         return self.family != EVALUATE
 
-    @property
-    def seeded_mentor(self) -> bool:
-        """Whether a run's seed also seeds its mentor (the mentors that take over online, not demonstrations)."""
-        return self.mentor_key == "mentor.name"
-
 
 def _baseline(key: str) -> Algorithm:
     method = BASELINE_METHODS[key]

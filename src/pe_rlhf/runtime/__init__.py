@@ -7,7 +7,8 @@
   (:mod:`~pe_rlhf.runtime.update`);
 - the config: field rules and ``ConfigError`` (:mod:`~pe_rlhf.runtime.config_rules`), the pieces of a structured
   config (:mod:`~pe_rlhf.runtime.config_schema`), Hydra composition (:mod:`~pe_rlhf.runtime.config_compose`), a
-  run's saved ``config.yaml`` and the env and mentor checks (:mod:`~pe_rlhf.runtime.config`), the world it
+  run's saved ``config.yaml`` and the env and mentor checks (:mod:`~pe_rlhf.runtime.config`), the settings an older
+  run saved that are no longer settings (:mod:`~pe_rlhf.runtime.config_retired`), the world it
   describes (:mod:`~pe_rlhf.runtime.world`), the recipes' command line (:mod:`~pe_rlhf.runtime.recipe`);
 - the outputs: the metrics CSV and loggers (:mod:`~pe_rlhf.runtime.csv_logger`,
   :mod:`~pe_rlhf.runtime.metrics_logger`), learning curves (:mod:`~pe_rlhf.runtime.plots`), the episode GIF

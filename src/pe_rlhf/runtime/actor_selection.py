@@ -35,7 +35,7 @@ class ActorSelection:
 
     def __init__(self, actor: torch.nn.Module, every: int, episodes: int, split: str = "train"):
         if split != "train":
-            raise ValueError(f"actor_selection.split={split!r}: the actor is picked on train scenes only "
+            raise ValueError(f"ActorSelection(split={split!r}): the actor is picked on train scenes only "
                              "(the test scenes are for the final evaluation); allowed: 'train'")
         if not 1 <= int(episodes) <= len(scene_seeds(split)):
             raise ValueError(f"actor_selection.episodes={episodes}: allowed 1 to {len(scene_seeds(split))} (the "

@@ -21,6 +21,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from pe_rlhf import durable
 from pe_rlhf.envs.config import DrivingConfig
+from pe_rlhf.runtime.config_retired import translate_retired
 from pe_rlhf.runtime.config_rules import ConfigError, check_human_kwargs, invalid_value, rule_bool, rule_number
 
 RECIPES_ENV_VAR = "PE_RLHF_RECIPES"  # the recipes directory, where no recipes/ is found above the package
@@ -45,14 +46,16 @@ def parse_overrides(overrides: Iterable[str]) -> list[tuple[str, str]]:
 
 def read_config_file(path: str | Path) -> tuple[dict[str, Any], str | None]:
     """A config file's values, and apart from them the registry name a run recorded under :data:`ALGORITHM_KEY`
-    (None: a recipe's config, or a run folder written before runs recorded it)."""
+    (None: a recipe's config, or a run folder written before runs recorded it). Settings an older run saved that
+    are no longer settings come back as the ones that replaced them
+    (:func:`~pe_rlhf.runtime.config_retired.translate_retired`)."""
     values = OmegaConf.to_container(OmegaConf.load(path))
     if values is None:
         values = {}
     if not isinstance(values, dict):
         raise ConfigError(f"config file {path} must be a mapping of config groups, got {type(values).__name__}")
     recorded = values.pop(ALGORITHM_KEY, None)
-    return values, None if recorded is None else str(recorded)
+    return translate_retired(values, path), None if recorded is None else str(recorded)
 
 
 def check_recorded_algorithm(recorded: str | None, expected: str) -> None:

@@ -37,6 +37,7 @@ from hydra.initialize import get_gh_backup, restore_gh_from_backup
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
+from pe_rlhf.runtime.config_retired import check_retired_override
 from pe_rlhf.runtime.config_rules import ConfigError, invalid_value
 from pe_rlhf.runtime.config_schema import OPEN_GROUPS
 
@@ -136,6 +137,8 @@ def check_overrides(overrides: Iterable[str], profiles: Mapping[str, Any]) -> li
         deletion = isinstance(item, str) and item.startswith("~")
         if not isinstance(item, str) or not override_key(item) or ("=" not in item and not deletion):
             raise ConfigError(f"override {item!r} is not of the form key=value (e.g. optim.lr=3e-4)")
+        if "=" in item:
+            check_retired_override(override_key(item), item.split("=", 1)[1])
         if override_key(item) == PROFILE_GROUP and "=" in item:
             profile = item.split("=", 1)[1].strip()
             if profile not in profiles:

@@ -16,7 +16,9 @@ from typing import Any
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
-WANDB_MODES = ("offline", "online", "disabled")
+# The logger group's backends (pe_rlhf.runtime.metrics_logger.MetricsLogger); csv writes metrics.csv, which the run's
+# plots, --resume (it is cut back to the checkpoint) and the summaries (pe-rlhf compare, a sweep's plots) read.
+LOGGER_BACKENDS = ("csv", "wandb", "tensorboard", "mlflow")
 SPLITS = ("train", "test")
 IMPORT_PATH = re.compile(r"^[A-Za-z_]\w*(\.[A-Za-z_]\w*)*:[A-Za-z_]\w*$")
 
@@ -82,6 +84,13 @@ def rule_choice(*options: str) -> Rule:
 
 def rule_string(v) -> str | None:
     return None if isinstance(v, str) and v.strip() else "must be a non-empty string"
+
+
+def rule_backends(v) -> str | None:
+    ok = (isinstance(v, (list, tuple, ListConfig)) and all(isinstance(b, str) and b in LOGGER_BACKENDS for b in v)
+          and len(set(v)) == len(v) and "csv" in v)
+    return None if ok else (f"must be a list of distinct backends from {list(LOGGER_BACKENDS)} that holds csv "
+                            "(metrics.csv: the plots, --resume and the summaries read it)")
 
 
 def rule_hidden(v) -> str | None:

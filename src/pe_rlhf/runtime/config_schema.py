@@ -12,9 +12,9 @@ from __future__ import annotations
 
 import copy
 from dataclasses import dataclass, field
-from typing import Any, Optional
+from typing import Any
 
-from pe_rlhf.runtime.config_rules import WANDB_MODES, Rule, rule_bool, rule_choice, rule_int, rule_optional, rule_string
+from pe_rlhf.runtime.config_rules import Rule, rule_backends, rule_int, rule_string
 
 OPEN_GROUPS = ("env", "mentor.kwargs")  # free-form groups, checked by name after composition
 
@@ -35,23 +35,22 @@ def open_group(default: dict[str, Any], rule: Rule | None = None) -> Any:
 
 @dataclass
 class LoggerConfig:
-    out_dir: Optional[str] = knob(None, rule_optional(rule_string))  # null: the recipe picks a run directory
-    csv: bool = knob(True, rule_bool)
-    wandb: bool = knob(False, rule_bool)
-    wandb_mode: str = knob("offline", rule_choice(*WANDB_MODES))  # offline | online | disabled
-    wandb_project: str = knob("pe-rlhf", rule_string)
-    tensorboard: bool = knob(False, rule_bool)
-    mlflow: bool = knob(False, rule_bool)  # MLflow: $MLFLOW_TRACKING_URI, else <run folder>/mlruns
+    """Where the metrics go (:class:`~pe_rlhf.runtime.metrics_logger.MetricsLogger`); the run folder is --out DIR."""
+
+    # csv (metrics.csv, always: the plots, --resume and the summaries read it) + any of wandb (offline unless
+    # $WANDB_MODE says otherwise), tensorboard, mlflow ($MLFLOW_TRACKING_URI, else <run folder>/mlruns)
+    backends: list[str] = knob(["csv"], rule_backends)
+    project: str = knob("pe-rlhf", rule_string)  # wandb's project, MLflow's experiment
     log_every: int = knob(1, rule_int(1))  # iterations between log lines
 
 
 @dataclass
 class ActorSelectionConfig:
-    """Picking the run's actor on train scenes (:mod:`pe_rlhf.runtime.actor_selection`)."""
+    """Picking the run's actor on train scenes (:mod:`pe_rlhf.runtime.actor_selection`); never on the test scenes,
+    which are for the final evaluation."""
 
     every_frames: int = knob(0, rule_int(0))  # 0: the last actor is the run's actor
-    episodes: int = knob(50, rule_int(1))  # the first this many scenes of the split (50: all train scenes)
-    split: str = knob("train", rule_choice("train"))  # train scenes only: the test scenes are for the final evaluation
+    episodes: int = knob(50, rule_int(1))  # the first this many train scenes (50: all of them)
 
 
 __all__ = ["OPEN_GROUPS", "ActorSelectionConfig", "LoggerConfig", "knob", "open_group"]

@@ -21,6 +21,7 @@ from typing import Any, Iterable, Mapping
 
 from torchrl.record.loggers.tensorboard import TensorboardLogger
 
+from pe_rlhf.runtime.config_rules import LOGGER_BACKENDS
 from pe_rlhf.runtime.csv_logger import CSV_NAME, STEP, CrashSafeCSVLogger, to_number
 
 VIDEO_FPS = 10  # the test-episode GIF's rate: the env's 10 Hz policy, real time
@@ -58,6 +59,11 @@ def read_metrics_csv(path: str | os.PathLike) -> tuple[list[str], list[dict[str,
     return columns, rows
 
 
+def wandb_mode() -> str:
+    """The mode a wandb run starts in: wandb's own ``$WANDB_MODE`` where a user set it, else ``offline``."""
+    return os.environ.get("WANDB_MODE") or "offline"
+
+
 class ResumableTensorboardLogger(TensorboardLogger):
     """TorchRL's ``TensorboardLogger`` whose writer purges the events from ``purge_step`` on (a resume)."""
 
@@ -84,17 +90,17 @@ def _flat(config: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
 class MetricsLogger:
     """Log ``{name: number}`` per step to ``out_dir/metrics.csv``, wandb, TensorBoard and/or MLflow.
 
-    In: ``out_dir`` (created); ``csv`` writes ``metrics.csv``; ``wandb`` starts a run (TorchRL's
-    ``WandbLogger``; ``mode="offline"`` by default, files under ``out_dir/wandb``, ``WANDB_SILENT`` set and, offline,
-    ``WANDB_ERROR_REPORTING=false`` (wandb's telemetry), so nothing touches the network unless
-    ``wandb_mode="online"``); ``tensorboard`` writes event files to
-    ``out_dir/tensorboard`` (``TensorboardLogger``) and raises ``ImportError`` at construction when the
-    ``tensorboard`` package is missing; ``mlflow`` logs to ``$MLFLOW_TRACKING_URI``, else to the file
-    store ``out_dir/mlruns`` (``MLFlowLogger``, experiment ``wandb_project``; ``mlflow`` imported only
-    then); ``config`` goes to wandb's run config, TensorBoard's text tab and MLflow's params.
-    ``resume=True`` keeps the rows of an existing ``metrics.csv`` (and the wandb run id in
-    ``out_dir/wandb_run_id``); call :meth:`truncate_after` with the checkpoint's step so that the
-    resumed curve has no repeat. Without ``resume`` an existing CSV is replaced.
+    In: ``out_dir`` (created); ``backends``, any of :data:`~pe_rlhf.runtime.config_rules.LOGGER_BACKENDS`:
+    ``csv`` writes ``metrics.csv``; ``wandb`` starts a run (TorchRL's ``WandbLogger``, project ``project``) in the
+    mode ``$WANDB_MODE`` names, ``offline`` when unset (files under ``out_dir/wandb``; ``WANDB_SILENT`` set and, unless
+    online, ``WANDB_ERROR_REPORTING=false``, wandb's telemetry, so nothing touches the network unless
+    ``WANDB_MODE=online``); ``tensorboard`` writes event files to ``out_dir/tensorboard`` (``TensorboardLogger``) and
+    raises ``ImportError`` at construction when the ``tensorboard`` package is missing; ``mlflow`` logs to
+    ``$MLFLOW_TRACKING_URI``, else to the file store ``out_dir/mlruns`` (``MLFlowLogger``, experiment ``project``;
+    ``mlflow`` imported only then); ``config`` goes to wandb's run config, TensorBoard's text tab and MLflow's
+    params. ``resume=True`` keeps the rows of an existing ``metrics.csv`` (and the wandb run id in
+    ``out_dir/wandb_run_id``); call :meth:`truncate_after` with the checkpoint's step so that the resumed curve has
+    no repeat. Without ``resume`` an existing CSV is replaced.
 
     Non-finite values are written as blank cells (and left out of the other loggers), with one
     ``warnings.warn`` per key. Use as a context manager or call :meth:`close`.
@@ -104,15 +110,15 @@ class MetricsLogger:
         self,
         out_dir: str | os.PathLike,
         *,
-        csv: bool = True,
-        wandb: bool = False,
-        wandb_mode: str = "offline",
-        wandb_project: str = "pe-rlhf",
-        tensorboard: bool = False,
-        mlflow: bool = False,
+        backends: Iterable[str] = ("csv",),
+        project: str = "pe-rlhf",
         config: dict | None = None,
         resume: bool = False,
     ):
+        backends = [backends] if isinstance(backends, str) else list(backends)
+        if any(b not in LOGGER_BACKENDS for b in backends):
+            raise ValueError(f"backends={backends!r} is invalid: allowed: any of {list(LOGGER_BACKENDS)}")
+        csv, tensorboard = "csv" in backends, "tensorboard" in backends
         if tensorboard:
             self._require_tensorboard()  # before anything is written
         self.out_dir = Path(out_dir)
@@ -127,10 +133,10 @@ class MetricsLogger:
         if csv:
             self.loggers["csv"] = CrashSafeCSVLogger(self.out_dir.name, self.out_dir, resume=self.resume)
         self.csv_path: Path | None = self.loggers["csv"].path if csv else None
-        if wandb:
-            self.loggers["wandb"] = self._start_wandb(wandb_mode, wandb_project)
-        if mlflow:
-            self.loggers["mlflow"] = self._start_mlflow(wandb_project)
+        if "wandb" in backends:
+            self.loggers["wandb"] = self._start_wandb(project)
+        if "mlflow" in backends:
+            self.loggers["mlflow"] = self._start_mlflow(project)
 
     # -- public API ------------------------------------------------------------------------------
     @property
@@ -233,8 +239,9 @@ class MetricsLogger:
             self.loggers["tensorboard"] = self._start_tensorboard()
         return [(name, logger) for name, logger in self.loggers.items() if name != "csv"]
 
-    def _start_wandb(self, mode: str, project: str):
+    def _start_wandb(self, project: str):
         os.environ.setdefault("WANDB_SILENT", "true")
+        mode = wandb_mode()
         if mode != "online":
             # wandb records its own telemetry whatever the run's mode and posts it to its server from a background
             # thread (an offline run's process reached api.forge.coreweave.com); WANDB_ERROR_REPORTING=false stops
@@ -244,8 +251,8 @@ class MetricsLogger:
             import wandb  # noqa: F401
             from torchrl.record.loggers.wandb import WandbLogger
         except Exception as err:  # noqa: BLE001 - a broken install raises more than ImportError
-            raise ImportError(f"wandb=True but wandb cannot be imported ({err}); "
-                              "pip install wandb or pass wandb=False") from err
+            raise ImportError(f"the wandb backend: wandb cannot be imported ({err}); "
+                              "pip install wandb or leave wandb out of logger.backends") from err
         id_file = self.out_dir / "wandb_run_id"
         run_id = id_file.read_text().strip() if self.resume and id_file.exists() else None
         # mode goes to wandb.init: WandbLogger(offline=True) would set WANDB_MODE for the whole process
@@ -260,7 +267,7 @@ class MetricsLogger:
             from torch.utils.tensorboard import SummaryWriter  # noqa: F401
         except Exception as err:  # noqa: BLE001 - torch raises ImportError/ModuleNotFoundError
             raise ImportError(
-                "tensorboard=True needs the 'tensorboard' package, which is not installed "
+                "the tensorboard backend needs the 'tensorboard' package, which is not installed "
                 "(pip install tensorboard); log to CSV and/or wandb instead"
             ) from err
 
@@ -278,8 +285,8 @@ class MetricsLogger:
             import mlflow
             from torchrl.record.loggers.mlflow import MLFlowLogger
         except Exception as err:  # noqa: BLE001
-            raise ImportError(f"mlflow=True but mlflow cannot be imported ({err}); "
-                              "pip install mlflow-skinny or pass mlflow=False") from err
+            raise ImportError(f"the mlflow backend: mlflow cannot be imported ({err}); "
+                              "pip install mlflow-skinny or leave mlflow out of logger.backends") from err
         logger = MLFlowLogger(experiment, tracking_uri=uri)
         mlflow.set_tag("mlflow.runName", self.out_dir.name)
         if self.config:
@@ -301,4 +308,4 @@ class MetricsLogger:
                 mlflow.end_run(status="FINISHED" if exit_code == 0 else "FAILED")
 
 
-__all__ = ["CSV_NAME", "STEP", "MetricsLogger", "flatten_eval_summary", "read_metrics_csv"]
+__all__ = ["CSV_NAME", "STEP", "MetricsLogger", "flatten_eval_summary", "read_metrics_csv", "wandb_mode"]

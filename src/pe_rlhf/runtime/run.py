@@ -107,8 +107,7 @@ class Run:
         picking = getattr(cfg, "actor_selection", None)  # absent (the baselines' configs): off
         self.selection = None
         if picking is not None and int(picking.every_frames) > 0:
-            self.selection = ActorSelection(learner.actor, int(picking.every_frames), int(picking.episodes),
-                                            str(picking.split))
+            self.selection = ActorSelection(learner.actor, int(picking.every_frames), int(picking.episodes))
 
     @property
     def progress(self) -> int:

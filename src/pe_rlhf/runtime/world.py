@@ -1,8 +1,8 @@
 """The world a recipe config describes, as every method builds it: the observation width and the mentor.
 
-Any recipe config with an ``env`` group (:func:`~pe_rlhf.runtime.config.driving_config`) and a ``mentor`` group
-(``name``, ``seed``, ``kwargs``) will do: the proxy-Q recipes' (:mod:`pe_rlhf.algorithms.proxy_q.builders` builds the
-rest of their env, collector and learner) and the baselines'.
+Any recipe config with a ``seed``, an ``env`` group (:func:`~pe_rlhf.runtime.config.driving_config`) and a ``mentor``
+group (``name``, ``kwargs``) will do: the proxy-Q recipes' (:mod:`pe_rlhf.algorithms.proxy_q.builders` builds the rest
+of their env, collector and learner) and the baselines'.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ def obs_dim(cfg) -> int:
 
 
 def build_mentor(cfg, worker_index: int = 0) -> Mentor:
-    """A mentor by preset name (seeded ``mentor.seed + worker_index``), or a user's class given as
+    """A mentor by preset name (seeded ``seed + worker_index``: the run's seed), or a user's class given as
     ``package.module:Name``."""
     name = str(cfg.mentor.name)
     if ":" in name:
@@ -36,7 +36,7 @@ def build_mentor(cfg, worker_index: int = 0) -> Mentor:
         # RealtimePacing holds the step rate; the window's own frame limiter at twice that rate never
         # waits between steps (two clocks would fight) but still throttles the redraws while paused.
         kwargs.setdefault("fps", 2.0 * float(cfg.collector.realtime_hz))
-    return make_mentor(name, int(cfg.mentor.seed) + int(worker_index), **kwargs)
+    return make_mentor(name, int(cfg.seed) + int(worker_index), **kwargs)
 
 
 __all__ = ["build_mentor", "obs_dim"]

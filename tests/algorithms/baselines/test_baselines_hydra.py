@@ -20,7 +20,7 @@ from pe_rlhf.algorithms.proxy_q.config import load_config
 ROOT = Path(__file__).resolve().parents[3]
 
 
-@pytest.mark.parametrize("method, override", [("sac_lag", "constraint.cost_limit=0.2"), ("iwr", "mentor.seed=4")])
+@pytest.mark.parametrize("method, override", [("sac_lag", "constraint.cost_limit=0.2"), ("iwr", "mentor.name=amateur")])
 def test_cfg_job_prints_the_composed_config_and_leaves_the_directory_alone(tmp_path, method, override):
     argv = ["profile=smoke", "seed=3", "optim.lr=3e-4", "env.traffic_density=0.2", override]
     proc = run_recipe(method, *argv, "--cfg", "job", cwd=tmp_path)

@@ -204,13 +204,13 @@ def test_every_profile_validates_for_both_methods(name):
 def test_cli_overrides_apply():
     cfg = load_config(overrides=["optim.lr=3e-4", "mentor.name=amateur", "loss.hidden=[128,128]",
                                  "selector.value=warmup", "selector.num_members=3", "env.traffic_density=0.2",
-                                 "mentor.kwargs.action_noise=0.2", "logger.out_dir=runs/x"])
+                                 "mentor.kwargs.action_noise=0.2", "logger.backends=[csv,tensorboard]"])
     assert cfg.optim.lr == pytest.approx(3e-4)
     assert cfg.mentor.name == "amateur" and cfg.mentor.kwargs.action_noise == 0.2
     assert list(cfg.loss.hidden) == [128, 128] and cfg.selector.num_members == 3
     assert driving_config(cfg).traffic_density == 0.2
     assert driving_config(cfg, split="test").split == "test"
-    assert cfg.logger.out_dir == "runs/x"
+    assert list(cfg.logger.backends) == ["csv", "tensorboard"]
 
 
 @pytest.mark.parametrize("override, named", [("optim.lrr=1", "optim.lrr"), ("optimizer.lr=1", "optimizer"),
@@ -237,7 +237,6 @@ INVALID = [
     ("env.trafic_density", "0.5"),
     ("mentor.name", "expert"),
     ("optim.threads", "0"),
-    ("mentor.seed", "1.5"),
     ("mentor.kwargs.skill", "3"),
     ("physics.model", "idm_only"),
     ("physics.obstacles", "sometimes"),
@@ -265,7 +264,9 @@ INVALID = [
     ("loss.q_value_bound", "2.0"),  # the proxy-value loss's, set on the paper loss: it would do nothing
     ("disturbance.enabled", "maybe"),
     ("disturbance.threshold", "4"),  # the disturbance cost's, with it off: it would do nothing
-    ("logger.wandb_mode", "cloud"),
+    ("logger.backends", "[csv,neptune]"),
+    ("logger.backends", "[wandb]"),
+    ("logger.project", "' '"),
     ("logger.log_every", "0"),
     ("eval.episodes", "0"),
     ("eval.split", "val"),

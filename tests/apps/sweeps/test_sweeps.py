@@ -44,11 +44,10 @@ def test_grid_expansion_names_and_overrides():
     by_name = {c.name: c for c in cells}
     cell = by_name["pe-rlhf__collapse__epsilon_select=1__s1"]
     assert cell.overrides == ("profile=smoke", "mentor.name=collapsing", "mentor.kwargs.switch_step=100",
-                              "selector.epsilon_select=1", "seed=1", "mentor.seed=1")
+                              "selector.epsilon_select=1", "seed=1")
     assert (cell.method.name, cell.mentor, cell.parameter, cell.seed) == ("pe-rlhf", "collapse", "epsilon_select=1", 1)
     assert by_name["haco__professional__s0"].overrides == (
-        "profile=smoke", "physics.enabled=false", "mentor.name=professional", "seed=0",
-        "mentor.seed=0")
+        "profile=smoke", "physics.enabled=false", "mentor.name=professional", "seed=0")
     idm = by_name["idm-mobil__s1"]
     assert idm.overrides == ("profile=smoke", "seed=1") and idm.method.recipe == "evaluate"
     check_cell_configs(cells)  # every override is a valid recipe config
@@ -135,7 +134,7 @@ def test_cli_dry_run_and_errors(tmp_path, capsys):
     printed = capsys.readouterr().out
     assert "sweep eps: 6 cells (0 finished, 0 to resume, 6 to run)" in printed
     assert "run      pe-rlhf__amateur__epsilon_select=1.5__s1: pe_rlhf profile=smoke mentor.name=amateur " \
-           "selector.epsilon_select=1.5 seed=1 mentor.seed=1" in printed
+           "selector.epsilon_select=1.5 seed=1" in printed
     assert not (tmp_path / "out").exists()  # a dry run writes nothing
     config.write_text("methods: [pe-rlhf]\nseeds: [0]\nmentors: [{name: amateur, kwargs: {action_noise: 2}}]\n")
     with pytest.raises(SystemExit):
@@ -188,6 +187,21 @@ def test_finished_cells_are_skipped_and_crashed_ones_resume(tmp_path):
     (tmp_path / cells[0].name / CELL_FILE).unlink()  # someone else's run folder is never emptied
     with pytest.raises(SweepConfigError, match="not made by a sweep"):
         plan(tmp_path, cells)
+
+
+def test_a_cell_folder_from_before_the_seed_seeded_the_mentor_is_still_the_cells(tmp_path):
+    """Cells added ``mentor.seed=<seed>`` until the run's seed seeded the mentor too (issue 43): their folders are
+    still the same cells (finished ones summarised, unfinished ones resumed), not another config's."""
+    cells = expand(_spec(methods=["pe-rlhf", "idm-mobil"], mentors=None, parameters=None, seeds=[1]))
+    for cell in cells:
+        write_record(tmp_path, cell)
+    record = tmp_path / cells[0].name / CELL_FILE
+    saved = json.loads(record.read_text())
+    record.write_text(json.dumps({**saved, "overrides": [*saved["overrides"], "mentor.seed=1"]}))
+    assert plan(tmp_path, cells) == ([], cells)
+    record.write_text(json.dumps({**saved, "overrides": [*saved["overrides"], "mentor.seed=2"]}))
+    with pytest.raises(SweepConfigError, match="overrides"):  # another seed's mentor: another config
+        check_folder(tmp_path, cells[0])
 
 
 # -- summary -------------------------------------------------------------------------------------

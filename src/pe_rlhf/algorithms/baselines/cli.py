@@ -50,8 +50,9 @@ from pe_rlhf.runtime.run_folder import hold_run_folder
 FINAL_EVAL = "final_eval.json"
 
 
-def run_dir(cfg, method: str, out: str | None) -> Path:
-    return Path(out or cfg.logger.out_dir or f"runs/{method}-{time.strftime('%Y%m%d-%H%M%S')}")
+def run_dir(method: str, out: str | None) -> Path:
+    """The run folder: ``--out DIR``, else ``runs/<method>-<time>``."""
+    return Path(out or f"runs/{method}-{time.strftime('%Y%m%d-%H%M%S')}")
 
 
 def load_run_config(method: str, options: RunOptions, overrides: list[str],
@@ -92,7 +93,7 @@ def _validated(cfg: DictConfig, overrides: list[str], method: str) -> DictConfig
 def run(method: str, cfg: DictConfig, options: RunOptions = RunOptions()) -> dict:
     """Train ``method`` with a validated ``cfg`` into ``options.out`` (or continue the run in ``options.resume``),
     write the outputs, print the final table."""
-    out = Path(options.resume) if options.resume else run_dir(cfg, method, options.out)
+    out = Path(options.resume) if options.resume else run_dir(method, options.out)
     with hold_run_folder(out):  # one writer per run folder, for the run's whole life
         return _run_in(out, method, cfg, options)
 
@@ -100,14 +101,11 @@ def run(method: str, cfg: DictConfig, options: RunOptions = RunOptions()) -> dic
 def _run_in(out: Path, method: str, cfg: DictConfig, options: RunOptions) -> dict:
     name = METHODS[method].name
     save_config(cfg, out / "config.yaml", algorithm_name(method))  # on --resume: with the overrides it continued under
-    lg = cfg.logger
-    with MetricsLogger(out, csv=bool(lg.csv), wandb=bool(lg.wandb), wandb_mode=str(lg.wandb_mode),
-                       wandb_project=str(lg.wandb_project), tensorboard=bool(lg.tensorboard), mlflow=bool(lg.mlflow),
-                       config=to_container(cfg), resume=bool(options.resume)) as logger:
+    with MetricsLogger(out, backends=cfg.logger.backends, project=str(cfg.logger.project), config=to_container(cfg),
+                       resume=bool(options.resume)) as logger:
         final = train_baseline(cfg, out, logger, checkpoint_dir=out / "checkpoints", resume=bool(options.resume))
     write_json(out / FINAL_EVAL, final)
-    if lg.csv:
-        plot_baseline_curves(out / CSV_NAME, out, cfg.constraint.cost_limit if "constraint" in cfg else None,
-                             steps_are_updates=METHODS[method].family == "offline")
+    plot_baseline_curves(out / CSV_NAME, out, cfg.constraint.cost_limit if "constraint" in cfg else None,
+                         steps_are_updates=METHODS[method].family == "offline")
     report_final(out, name, final, cfg, options, policy=lambda: TorchRLPolicyAdapter(load_run_actor(out)))
     return final

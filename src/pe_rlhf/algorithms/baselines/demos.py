@@ -46,7 +46,7 @@ def _recorded_steps(directory: Path) -> int:
 def _mentor(name: str, seed: int):
     from pe_rlhf.runtime.world import build_mentor
 
-    return build_mentor(OmegaConf.create({"mentor": {"name": name, "seed": seed, "kwargs": {}}}))
+    return build_mentor(OmegaConf.create({"seed": seed, "mentor": {"name": name, "kwargs": {}}}))
 
 
 def ensure_demonstrations(cfg, directory: str | Path, progress: bool = True) -> dict:

@@ -207,7 +207,6 @@ class HilMentorConfig:
 
     # professional | amateur | adversarial | bad, or "package.module:Name" (not human: no real-time pacing here)
     name: str = knob("professional", _hil_mentor)
-    seed: int = knob(0, rule_int(0))  # the simulated mentor's RNG
     kwargs: dict[str, Any] = open_group({}, _mapping)  # SkillProfile fields (e.g. action_noise)
 
 

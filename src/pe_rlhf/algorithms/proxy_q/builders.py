@@ -17,7 +17,7 @@ Collection backends (``collector.backend``), all TorchRL collectors:
 
 Worker ``i`` builds its own env with :func:`make_worker_env` (its own mentor, physics, selector,
 ``InterventionTransform`` and, with ``disturbance.enabled`` (HAIM-DRL), ``TrafficDisturbanceCost``): env
-seed ``seed + i``, mentor seed ``mentor.seed + i``, warm-up ``ceil(collector.warmup_steps / num_workers)``
+seed ``seed + i``, mentor seed ``seed + i``, warm-up ``ceil(collector.warmup_steps / num_workers)``
 steps. The Q-ensemble reaches the workers in shared
 memory (``share_memory()``; handed over through ``create_env_kwargs``, which torch.multiprocessing
 pickles with storage handles), so the main process's in-place fits are seen at once; ray workers

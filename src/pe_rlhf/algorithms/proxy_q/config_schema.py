@@ -70,7 +70,6 @@ _POSITIVE = rule_number(0, lo_open=True)
 class MentorConfig:
     # professional | amateur | adversarial | bad | human, or "package.module:Name"
     name: str = knob("professional", rule_mentor_name)
-    seed: int = knob(0, rule_int(0))  # the simulated mentor's RNG
     # passed to make_mentor: SkillProfile fields (e.g. action_noise) or HumanMentor args
     kwargs: dict[str, Any] = open_group({})
 

@@ -98,7 +98,7 @@ def run(cfg: DictConfig, options: RunOptions = RunOptions(), *, loop: Loop) -> d
     ``options.resume``), write the outputs, print the final table."""
     method = method_name(cfg)
     out = Path(options.resume) if options.resume else \
-        Path(options.out or cfg.logger.out_dir or f"runs/{method.lower()}-{time.strftime('%Y%m%d-%H%M%S')}")
+        Path(options.out or f"runs/{method.lower()}-{time.strftime('%Y%m%d-%H%M%S')}")
     rb = cfg.replay_buffer  # refused before anything is written: replay (2 storages when balanced) and warm-up
     check_buffer_fits("replay_buffer.size", int(rb.size), 8 * obs_dim(cfg) + 256,
                       3 if rb.get("takeover_share") is not None else 2, saved_rows=int(cfg.collector.total_frames),
@@ -112,11 +112,8 @@ def _run_in(out: Path, cfg: DictConfig, options: RunOptions, method: str, loop: 
         announce_changes(load_config(out / "config.yaml", apply_profile=False), cfg, RESUME_REFUSED, str(out))
     save_config(cfg, out / "config.yaml", algorithm_name(cfg))
     resume = bool(options.resume)
-    with MetricsLogger(out, csv=bool(cfg.logger.csv), wandb=bool(cfg.logger.wandb),
-                       wandb_mode=str(cfg.logger.wandb_mode),
-                       wandb_project=str(cfg.logger.wandb_project), tensorboard=bool(cfg.logger.tensorboard),
-                       mlflow=bool(cfg.logger.mlflow),
-                       config=to_container(cfg), resume=resume) as logger:
+    with MetricsLogger(out, backends=cfg.logger.backends, project=str(cfg.logger.project), config=to_container(cfg),
+                       resume=resume) as logger:
         final = loop(cfg, out, logger, resume)
     write_json(out / "final_eval.json", final)
     plot_learning_curves(out / "metrics.csv", out, warmup_steps=int(cfg.collector.warmup_steps))

@@ -73,11 +73,9 @@ def expand(spec: SweepSpec) -> list[Cell]:
         variants: list[Variant | None] = list(spec.variants) if spec.variants and method.parameters else [None]
         for (index, mentor), variant in ((m, v) for m in mentors for v in variants):
             for seed in spec.seeds:
-                seeding = [f"seed={seed}"] + ([f"mentor.seed={seed}"] if method.seeded_mentor and method.trains
-                                              else [])
                 overrides = (*spec.base, *method.overrides,
                              *(_mentor_overrides(method, mentor, index) if mentor else ()),
-                             *(variant.overrides if variant else ()), *seeding)
+                             *(variant.overrides if variant else ()), f"seed={seed}")  # the mentor's too
                 parts = [method.name, mentor.label if mentor else None, variant.label if variant else None,
                          f"s{seed}"]
                 cells.append(Cell(name="__".join(_safe(p) for p in parts if p is not None), method=method,
@@ -131,7 +129,7 @@ def _build_mentor(cfg) -> None:
 
     name = str(cfg.mentor.name)
     if name in MENTOR_NAMES and name != "human":
-        make_mentor(name, int(cfg.mentor.seed), **dict(cfg.mentor.kwargs or {}))
+        make_mentor(name, int(cfg.seed), **dict(cfg.mentor.kwargs or {}))
 
 
 # --------------------------------------------------------------------------- bookkeeping
@@ -160,12 +158,20 @@ def check_folder(out: Path, cell: Cell) -> None:
                                    "use another --out")
         return
     saved = json.loads(path.read_text())
+    if isinstance(saved.get("overrides"), list):
+        saved["overrides"] = _without_retired(saved["overrides"], saved.get("seed"))
     mine = cell.record()
     changed = [k for k in ("recipe", "policy", "overrides") if saved.get(k) != mine[k]]
     if changed:
         raise SweepConfigError(f"{path.parent} was made by another config ({', '.join(changed)} differ: "
                                f"saved {[saved.get(k) for k in changed]}, now {[mine[k] for k in changed]}); "
                                "use another --out, or delete that folder to rerun it")
+
+
+def _without_retired(overrides: list, seed) -> list:
+    """A ``cell.json``'s overrides without the retired ``mentor.seed=<the cell's seed>`` that cells added before the
+    run's ``seed`` seeded the mentor too (issue 43): such a folder is still this cell's."""
+    return [item for item in overrides if item != f"mentor.seed={seed}"]
 
 
 def write_record(out: Path, cell: Cell) -> None:

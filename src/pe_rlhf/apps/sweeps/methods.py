@@ -10,7 +10,7 @@ does not apply) and whether the sweep's parameter axis applies.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 from pe_rlhf.algorithms.names import EVALUATE, PROXY_Q_RECIPES
 
@@ -36,7 +36,6 @@ class MethodSpec:
     policy: str | None = None
     mentor_key: str | None = "mentor.name"
     parameters: bool = True
-    seeded_mentor: bool = field(default=True, compare=False)  # the cell's seed also seeds the mentor
 
     @property
     def trains(self) -> bool:
@@ -49,7 +48,7 @@ def builtin_methods() -> dict[str, MethodSpec]:
     from pe_rlhf.algorithms import ALGORITHMS
 
     return {name: MethodSpec(name, a.recipe, a.overrides, policy=a.policy, mentor_key=a.mentor_key,
-                             parameters=a.trains, seeded_mentor=a.seeded_mentor)
+                             parameters=a.trains)
             for name, a in ALGORITHMS.items()}
 
 

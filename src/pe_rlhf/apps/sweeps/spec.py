@@ -166,7 +166,7 @@ def _method(item: Any, i: int, builtins: dict[str, MethodSpec]) -> MethodSpec:
         raise _fail(f"{field}.parameters", parameters, "must be true or false")
     extra = _overrides(item.get("overrides"), f"{field}.overrides")
     return replace(spec, name=name, recipe=recipe, policy=policy, overrides=spec.overrides + extra,
-                   mentor_key=mentor_key, parameters=parameters, seeded_mentor=mentor_key == "mentor.name")
+                   mentor_key=mentor_key, parameters=parameters)
 
 
 def _mentor(item: Any, i: int) -> MentorSpec:
