@@ -250,3 +250,40 @@ def test_a_corner_passing_within_one_step_is_a_crash_as_in_the_simulator():
     _, _, terminated, _, info = env.step(COAST)
     assert terminated and info["crash_vehicle"]
     assert forecast == pytest.approx(0.1)
+
+
+def test_creeping_past_a_cone_the_forecast_fails_where_the_simulator_crashes():
+    """Train scene 8 with the uniform-random adversary (traced): the car, stopped beside a taper of cones, creeps at
+    0.44 m/s turned 0.1 rad across it with a cone 3 cm off its front corner. The simulator moves in 0.05 s
+    sub-steps and after each one counts a crash where the body, pushed 0.05 s on along its heading, would touch
+    (highway-env's forward polygon test), so steering away with throttle crashes and braking does not; the forecast
+    integrated 0.1 s at once and swept back: it said the reverse, the random action got through and the car hit
+    the cone. Held for the whole horizon, the forecast's first failure is the simulator's, for each action."""
+    import copy
+
+    from pe_rlhf.envs.traffic import TrafficCone
+
+    env = straight_env(scene_seed=0)
+    place_ego(env, 60.0, lane=1, speed=0.437, dheading=0.1004)
+    ego = env.vehicle
+    road = ego.heading - 0.1004
+    c, s = np.cos(road), np.sin(road)
+    offset = np.array([2.6155, -0.9615])  # the cone's offset from the ego in the traced state, road frame
+    env.road.objects.append(TrafficCone(env.road, ego.position + np.array([c * offset[0] - s * offset[1],
+                                                                           s * offset[0] + c * offset[1]]), road))
+    config = SafetyForecastConfig(hold=3.0, horizon=3.0)
+    for action in ([0.32, 0.64], [0.12, -0.05], [0.0, -1.0], [1.0, -1.0]):
+        action = np.array(action, np.float32)
+        forecast = time_to_failure(env, action, config)
+        sim, crash_at = copy.deepcopy(env), None
+        for step in range(1, 31):
+            _, _, terminated, _, info = sim.step(action)
+            if info["crash_object"] or info["out_of_road"]:
+                crash_at = step * 0.1
+                break
+            if terminated:
+                break
+        if crash_at is None:
+            assert forecast == pytest.approx(3.0), action
+        else:  # a contact the simulator finds in a sub-step's look-ahead counts at the next step
+            assert crash_at - 0.1 - 1e-6 <= forecast <= crash_at + 1e-6, (action, forecast, crash_at)
