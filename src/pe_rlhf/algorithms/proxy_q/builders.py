@@ -139,12 +139,31 @@ def epsilon_select(cfg) -> float:
     return EPSILON_BY_VALUE[parse_value_source(cfg.selector.value)[0]]
 
 
+# The rule over selector.value=forecast (HybridActionSelector's arguments): the executed-action floor held against the
+# presets and the persistent adversaries on train scenes 0-9 with it (docs/guide/shield.md, issue 42). A veto holds
+# until the mentor's action repeated is no worse (latch); the mentor is compared with the better of physics' action and
+# braking at once, and the better one runs (physics_or_recovery); no slack where that fallback itself fails (strict);
+# where physics is safe, the mentor's action must make physics' progress less 1 m (a safe action can stop the car).
+FORECAST_RULE = {"persistence": "latch", "reference": "physics_or_recovery", "strict_in_danger": True,
+                 "progress_margin": 1.0}
+
+
 def build_selector(cfg, value_source: ValueSource) -> HybridActionSelector:
+    """The recipe's ``HybridActionSelector`` over ``value_source``: ``selector.epsilon_select`` (or its kind's
+    default), ``variance_threshold``, ``switch_margin``, ``veto_patience`` and ``imminent_failure`` from
+    ``cfg.selector``; with ``selector.value=forecast`` also :data:`FORECAST_RULE` (the Q-ensemble sources keep the
+    paper's rule: each step judged alone). ``selector.veto_patience`` > 1 asks for the patient veto, which keeps
+    the same count as the latch: that run gets the patient veto in the latch's place (``persistence="off"``) and
+    the rest of :data:`FORECAST_RULE`."""
     margin, imminent = cfg.selector.switch_margin, cfg.selector.imminent_failure
+    patience = int(cfg.selector.veto_patience)
+    rule = {}
+    if parse_value_source(cfg.selector.value)[0] == "forecast":
+        rule = dict(FORECAST_RULE, persistence="off" if patience > 1 else FORECAST_RULE["persistence"])
     return HybridActionSelector(value_source, epsilon_select(cfg), cfg.selector.variance_threshold,
                                 switch_margin=None if margin is None else float(margin),
-                                veto_patience=int(cfg.selector.veto_patience),
-                                imminent_failure=None if imminent is None else float(imminent))
+                                veto_patience=patience,
+                                imminent_failure=None if imminent is None else float(imminent), **rule)
 
 
 def build_train_env(cfg, env_config, mentor: Mentor, value_source: ValueSource | None, physics,
