@@ -137,9 +137,10 @@ def measure(mentors: list[str], scenes: list[int], split: str, value: str, epsil
             forecast_hold: float = 1.0, forecast_recovery: str = "route", veto_patience: int = 1,
             imminent_failure: float | None = None, one_lane: bool = False,
             persistence: list[str] = ("off",), references: list[str] = ("physics",),
-            strict: list[bool] = (False,), progress_margins: list[float | None] = (None,), save=None) -> list[dict]:
-    """Every row (see the module docstring) for every mentor, IDM-MOBIL alone once. ``save(results)`` is called
-    after each row (a long run keeps what it measured)."""
+            strict: list[bool] = (False,), progress_margins: list[float | None] = (None,), save=None,
+            floor: bool = True) -> list[dict]:
+    """Every row (see the module docstring) for every mentor, IDM-MOBIL alone once (``floor=False``: not, it is
+    measured apart). ``save(results)`` is called after each row (a long run keeps what it measured)."""
     world = DrivingConfig(split=split, lane_features=True)
     kind, path = parse_value_source(value)
     if kind == "warmup":
@@ -148,7 +149,9 @@ def measure(mentors: list[str], scenes: list[int], split: str, value: str, epsil
     ensemble = forecast_value(forecast_hold, forecast_recovery, one_lane) if kind == "forecast" \
         else load_value_expert(path, world_obs_dim(world))
     results = _Rows(save)
-    results.append({"mentor": None, "row": "idm-mobil", **drive(None, scenes, split, world=world, progress="idm-mobil")})
+    if floor:
+        results.append({"mentor": None, "row": "idm-mobil",
+                        **drive(None, scenes, split, world=world, progress="idm-mobil")})
     for mentor in mentors:
         results.append({"mentor": mentor, "row": "as-is",
                         **drive(mentor, scenes, split, world=world, progress=f"{mentor} as-is")})
@@ -291,6 +294,8 @@ def main(argv=None) -> list[dict]:
                         "SkillProfile.stall_speed [m/s] (the stall test's speed)")
     parser.add_argument("--warmup", action="store_true", help="instead: the warm-up's executed actions, the mentor "
                         "alone and under the selector (selector.warmup_selection)")
+    parser.add_argument("--no-floor", action="store_true", help="leave out the idm-mobil row (one run per mentor "
+                        "on a long split measures it once, apart)")
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
@@ -314,7 +319,8 @@ def main(argv=None) -> list[dict]:
         results = measure(args.mentors, scenes, args.split, args.value, args.epsilons, args.switch_margins,
                       args.variance_threshold, args.forecast_hold, args.forecast_recovery,
                           args.veto_patience, args.imminent_failure, args.hold_one_lane, args.persistence,
-                          args.references, [s == "on" for s in args.strict], args.progress_margins, save)
+                          args.references, [s == "on" for s in args.strict], args.progress_margins, save,
+                          floor=not args.no_floor)
     print(format_table(results))
     print(f"{len(scenes)} {args.split} scenes ({scenes[0]}-{scenes[-1]}), value {args.value}, "
           f"{time.time() - t:.0f} s", flush=True)

@@ -60,11 +60,15 @@ def agent_policy(run_dir: str):
     return TorchRLPolicyAdapter(load_run_actor(run_dir))
 
 
-def measure(policies: dict, seeds: list[int], config: DrivingConfig, threshold: float, save=None) -> dict:
-    """Each policy (name -> factory) alone and shielded; IDM-MOBIL alone once; decisions per second.
-    ``save(results)`` is called after each policy (a long run keeps what it measured)."""
-    results = {"idm-mobil": {"alone": rates(evaluate(make_policy("idm-mobil", 0), seeds, config, progress=True,
-                                                     name="idm-mobil").to_dict())}}
+def measure(policies: dict, seeds: list[int], config: DrivingConfig, threshold: float, save=None,
+            floor: bool = True) -> dict:
+    """Each policy (name -> factory) alone and shielded; IDM-MOBIL alone once (``floor=False``: not, measured
+    apart); decisions per second. ``save(results)`` is called after each policy (a long run keeps what it
+    measured)."""
+    results = {}
+    if floor:
+        results["idm-mobil"] = {"alone": rates(evaluate(make_policy("idm-mobil", 0), seeds, config, progress=True,
+                                                        name="idm-mobil").to_dict())}
     latencies = []
     for name, factory in policies.items():
         alone = evaluate(factory(), seeds, config, name=name).to_dict()
@@ -136,6 +140,7 @@ def main(argv=None) -> dict:
     parser.add_argument("--agent", action="append", default=[], metavar="NAME=RUN_DIR",
                         help="a trained run's actor, alone and shielded (repeatable)")
     parser.add_argument("--threshold", type=float, default=0.5, help="the shield's threshold [s]")
+    parser.add_argument("--no-floor", action="store_true", help="leave out IDM-MOBIL alone (measured once, apart)")
     parser.add_argument("--json", type=Path, default=None)
     parser.add_argument("--cpu-time", action="store_true", help="instead: CPU time of one decision on a few train "
                         "scenes (one core's cost, not the wall clock of a shared machine)")
@@ -164,7 +169,8 @@ def main(argv=None) -> dict:
             args.json.write_text(json.dumps({**results, "meta": {**meta, "seconds": round(time.time() - start)}},
                                             indent=2) + "\n")
 
-    results = measure(policies, seeds, DrivingConfig(split=args.split, lane_features=True), args.threshold, save)
+    results = measure(policies, seeds, DrivingConfig(split=args.split, lane_features=True), args.threshold, save,
+                      floor=not args.no_floor)
     results["meta"] = {**meta, "seconds": round(time.time() - start)}
     save(results)
     print(f"decisions per second (one thread): {results['decisions_per_second']:.0f}; {len(seeds)} {args.split} "

@@ -117,6 +117,24 @@ def test_recipe_value_source_forecast():
     assert selector.epsilon_select == 0.0
 
 
+def test_the_recipe_runs_the_forecast_rule_and_the_ensembles_keep_the_papers():
+    """``selector.value=forecast`` builds the rule calibrated on train scenes (latch, physics or recovery, strict,
+    1 m of progress); a patient veto (``veto_patience`` > 1) takes the latch's place; a Q-ensemble keeps each step
+    judged alone."""
+    cfg = load_config(overrides=["selector.value=forecast"])
+    selector = build_selector(cfg, build_value_source(cfg))
+    assert (selector.persistence, selector.reference, selector.strict_in_danger, selector.progress_margin,
+            selector.veto_patience, selector.epsilon_select) == ("latch", "physics_or_recovery", True, 1.0, 1, -0.5)
+    cfg = load_config(overrides=["selector.value=forecast", "selector.veto_patience=3"])
+    selector = build_selector(cfg, build_value_source(cfg))
+    assert (selector.persistence, selector.reference, selector.strict_in_danger, selector.progress_margin,
+            selector.veto_patience) == ("off", "physics_or_recovery", True, 1.0, 3)
+    cfg = load_config(overrides=["selector.value=warmup"])
+    selector = build_selector(cfg, build_value_source(cfg))
+    assert (selector.persistence, selector.reference, selector.strict_in_danger, selector.progress_margin) == \
+        ("off", "physics", False, None)
+
+
 def test_a_hold_of_one_lane_lets_a_lane_change_through():
     """A lane-change steer held 1 s turns the car off the road; held only until it has crossed one lane, then
     recovered, it is safe. Steering off the road from the outer lane still fails."""
@@ -250,3 +268,40 @@ def test_a_corner_passing_within_one_step_is_a_crash_as_in_the_simulator():
     _, _, terminated, _, info = env.step(COAST)
     assert terminated and info["crash_vehicle"]
     assert forecast == pytest.approx(0.1)
+
+
+def test_creeping_past_a_cone_the_forecast_fails_where_the_simulator_crashes():
+    """Train scene 8 with the uniform-random adversary (traced): the car, stopped beside a taper of cones, creeps at
+    0.44 m/s turned 0.1 rad across it with a cone 3 cm off its front corner. The simulator moves in 0.05 s
+    sub-steps and after each one counts a crash where the body, pushed 0.05 s on along its heading, would touch
+    (highway-env's forward polygon test), so steering away with throttle crashes and braking does not; the forecast
+    integrated 0.1 s at once and swept back: it said the reverse, the random action got through and the car hit
+    the cone. Held for the whole horizon, the forecast's first failure is the simulator's, for each action."""
+    import copy
+
+    from pe_rlhf.envs.traffic import TrafficCone
+
+    env = straight_env(scene_seed=0)
+    place_ego(env, 60.0, lane=1, speed=0.437, dheading=0.1004)
+    ego = env.vehicle
+    road = ego.heading - 0.1004
+    c, s = np.cos(road), np.sin(road)
+    offset = np.array([2.6155, -0.9615])  # the cone's offset from the ego in the traced state, road frame
+    env.road.objects.append(TrafficCone(env.road, ego.position + np.array([c * offset[0] - s * offset[1],
+                                                                           s * offset[0] + c * offset[1]]), road))
+    config = SafetyForecastConfig(hold=3.0, horizon=3.0)
+    for action in ([0.32, 0.64], [0.12, -0.05], [0.0, -1.0], [1.0, -1.0]):
+        action = np.array(action, np.float32)
+        forecast = time_to_failure(env, action, config)
+        sim, crash_at = copy.deepcopy(env), None
+        for step in range(1, 31):
+            _, _, terminated, _, info = sim.step(action)
+            if info["crash_object"] or info["out_of_road"]:
+                crash_at = step * 0.1
+                break
+            if terminated:
+                break
+        if crash_at is None:
+            assert forecast == pytest.approx(3.0), action
+        else:  # a contact the simulator finds in a sub-step's look-ahead counts at the next step
+            assert crash_at - 0.1 - 1e-6 <= forecast <= crash_at + 1e-6, (action, forecast, crash_at)

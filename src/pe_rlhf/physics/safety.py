@@ -6,8 +6,11 @@ module predicts it from the vehicle model instead: the ego, a kinematic bicycle 
 simulator's ``highway_env`` vehicle), holds the candidate action for ``hold`` seconds, then recovers as well
 as a car can (full braking, steering back along the route); road users ahead keep their velocity, static
 obstacles stay, and moving road users behind drive on under the IDM, braking for the ego only once it is in
-their lane and no harder than their car can (:mod:`pe_rlhf.physics.followers`; ``followers=False``: ignored). The candidate *fails* at the first forecast instant its body overlaps one of them or its
-centre leaves the road (the env's own ``is_on_road`` test and edge margin).
+their lane and no harder than their car can (:mod:`pe_rlhf.physics.followers`; ``followers=False``: ignored).
+The forecast moves in the simulator's sub-steps (``1 / simulation_frequency``), and the candidate *fails* at
+the first step where, after one of them, its body touches a road user by the simulator's own test (the polygon
+test with each body pushed on by its velocity over the sub-step, which the env counts as a crash), or where its
+centre leaves the road (the env's own ``is_on_road`` test and edge margin, once a step as the env).
 
 :func:`time_to_failure` returns that instant in seconds (``horizon`` when nothing fails), so larger is
 safer and a failure now is worth the least. :class:`SafetyForecastValue` scores a batch of actions with it
@@ -106,8 +109,8 @@ def time_to_failure(env, action, config: SafetyForecastConfig | None = None) -> 
     hold_steps = min(int(round(config.hold / config.dt)), forecast.steps)
     lateral0 = env.route.lateral_offset(state[0], state[3]) if config.hold_one_lane else 0.0
     for i in range(1, hold_steps + 1):
-        state = forecast.advance(state, steering, accel)
-        if forecast.failed(state, i):
+        state, failed = forecast.step(state, steering, accel, i)
+        if failed:
             return i * config.dt
         if config.hold_one_lane:
             segment, _ = env.route.project(state[0], state[3])
@@ -147,11 +150,27 @@ class _Forecast:
         self.behind0 = self.followers.initial() if self.followers else None
         self.steps = int(round(config.horizon / config.dt))
         self.max_speed = float(getattr(self.ego, "MAX_SPEED", 40.0))
+        # The simulator moves in sub-steps of 1 / simulation_frequency and tests contact after each one; the
+        # forecast does the same, so a contact is found where the simulator finds it (and only there).
+        frequency = (getattr(env, "config", None) or {}).get("simulation_frequency")
+        self.substeps = max(1, int(round(config.dt * frequency))) if frequency else 1
 
-    def advance(self, state, steering: float, accel: float):
-        """One ``dt`` of the kinematic bicycle (the simulator's equations), and of the followers."""
+    def step(self, state, steering: float, accel: float, i: int):
+        """``(state, failed)`` after forecast step ``i`` (one ``dt``): :meth:`advance` in the simulator's
+        sub-steps, each followed by its contact test (:meth:`touching`), then the road test at the step's end
+        (the env's, once a step)."""
+        dt = self.config.dt / self.substeps
+        touched = False
+        for j in range(1, self.substeps + 1):
+            state = self.advance(state, steering, accel, dt)
+            touched = touched or self.touching(state, (i - 1) * self.config.dt + j * dt, dt)
+        return state, touched or not self.env.road.network.is_on_road(state[0], ROAD_EDGE_MARGIN)
+
+    def advance(self, state, steering: float, accel: float, dt: float | None = None):
+        """One ``dt`` (``config.dt`` by default) of the kinematic bicycle (the simulator's equations), and of the
+        followers."""
         position, heading, speed, segment, behind = state
-        dt, half = self.config.dt, self.ego.LENGTH / 2
+        dt, half = (self.config.dt if dt is None else dt), self.ego.LENGTH / 2
         if behind is not None:  # they react to where the ego is now, then all move (the simulator's order)
             behind = self.followers.step(behind, position, heading, speed, dt)
         beta = math.atan(0.5 * math.tan(steering))
@@ -160,16 +179,14 @@ class _Forecast:
         speed = min(max(speed + accel * dt, 0.0), self.max_speed)
         return position, heading, speed, segment, behind
 
-    def failed(self, state, i: int) -> bool:
-        """Whether the ego at ``state``, ``i`` steps ahead, is off the road or touches a road user within the
-        last ``dt``: the simulator's own test (highway-env's ``are_polygons_intersecting`` with each body's
-        displacement, which the env counts as a crash, ``impact``), swept back over the step."""
+    def touching(self, state, t: float, dt: float) -> bool:
+        """Whether the ego at ``state``, ``t`` seconds ahead, touches a road user: the simulator's own test after
+        each of its sub-steps of ``dt`` (highway-env's ``are_polygons_intersecting``, each body pushed on by its
+        velocity over ``dt``; a contact in that look-ahead is an ``impact``, which the env counts as a crash)."""
         position, heading, speed = state[0], state[1], state[2]
-        if not self.env.road.network.is_on_road(position, ROAD_EDGE_MARGIN):
-            return True
-        t, ego, dt = i * self.config.dt, self.ego, self.config.dt
+        ego = self.ego
         ego_corners = None  # built only when a road user is near enough to touch (most steps: none)
-        ego_back = -speed * dt * np.array([math.cos(heading), math.sin(heading)])
+        ego_on = speed * dt * np.array([math.cos(heading), math.sin(heading)])
         behind = [] if state[4] is None else self.followers.poses(state[4])
         for other, head, length, width, vel in [(pos + vel * t, head, length, width, vel)
                                                 for pos, vel, head, length, width in self.others] + behind:
@@ -178,9 +195,9 @@ class _Forecast:
                 continue
             if ego_corners is None:
                 ego_corners = utils.rect_corners(position, ego.LENGTH, ego.WIDTH, heading)
-            touching, swept, _ = utils.are_polygons_intersecting(
-                ego_corners, utils.rect_corners(other, length, width, head), ego_back, -vel * dt)
-            if touching or swept:
+            touching, will_touch, _ = utils.are_polygons_intersecting(
+                ego_corners, utils.rect_corners(other, length, width, head), ego_on, vel * dt)
+            if touching or will_touch:
                 return True
         return False
 
@@ -205,8 +222,8 @@ class _Forecast:
         config = self.config
         for i in range(start + 1, self.steps + 1):
             state = _on_segment(state, self.env.route.project(state[0], state[3])[0])
-            state = self.advance(state, self.recovery_steering(state, slot), -config.recovery_braking)
-            if self.failed(state, i):
+            state, failed = self.step(state, self.recovery_steering(state, slot), -config.recovery_braking, i)
+            if failed:
                 return i * config.dt
             if state[2] <= 0.0 and state[4] is None:
                 return config.horizon  # stopped on the road, clear of everything: nothing more can happen

@@ -141,8 +141,21 @@ def epsilon_select(cfg) -> float:
     return EPSILON_BY_VALUE[parse_value_source(cfg.selector.value)[0]]
 
 
+# The rule over selector.value=forecast (HybridActionSelector's arguments): the executed-action floor held against the
+# presets and the persistent adversaries on train scenes 0-9 with it (docs/guide/shield.md, issue 42). A veto holds
+# until the mentor's action repeated is no worse (latch); the mentor is compared with the better of physics' action and
+# braking at once, and the better one runs (physics_or_recovery); no slack where that fallback itself fails (strict);
+# where physics is safe, the mentor's action must make physics' progress less 1 m (a safe action can stop the car).
+FORECAST_RULE = {"persistence": "latch", "reference": "physics_or_recovery", "strict_in_danger": True,
+                 "progress_margin": 1.0}
+
+
 def build_selector(cfg, value_source: ValueSource) -> HybridActionSelector:
-    return HybridActionSelector(value_source, epsilon_select(cfg))
+    """The recipe's ``HybridActionSelector`` over ``value_source`` at :func:`epsilon_select`; with
+    ``selector.value=forecast`` also :data:`FORECAST_RULE` (the Q-ensemble sources keep the paper's rule: each step
+    judged alone)."""
+    rule = FORECAST_RULE if parse_value_source(cfg.selector.value)[0] == "forecast" else {}
+    return HybridActionSelector(value_source, epsilon_select(cfg), **rule)
 
 
 def build_train_env(cfg, env_config, mentor: Mentor, value_source: ValueSource | None, physics,
