@@ -1,18 +1,17 @@
 """README's "Compose the pieces" builds the method ``recipes/pe_rlhf/train.py`` runs with its defaults: the same
 classes with the same settings as the recipe's builders make (env, mentor, physics, selector and its value
-source, the intervention transform, ``PERLHFLoss`` and its networks)."""
+source, the intervention transform, ``ProxyValueLoss`` and its networks)."""
 
 from __future__ import annotations
 
 import dataclasses
 
 import pytest
-import torch
 from _doc_blocks import ROOT, read_blocks
 
 from pe_rlhf.algorithms.proxy_q import builders
 from pe_rlhf.algorithms.proxy_q.config import load_config
-from pe_rlhf.objectives import PERLHFLoss
+from pe_rlhf.objectives import ProxyValueLoss
 from pe_rlhf.runtime.config import driving_config
 from pe_rlhf.runtime.world import build_mentor
 from pe_rlhf.transforms import InterventionTransform
@@ -20,9 +19,8 @@ from pe_rlhf.transforms import InterventionTransform
 pytestmark = [pytest.mark.usefixtures("one_thread_module"),
               pytest.mark.filterwarnings("ignore:No target network updater")]
 
-LOSS_SETTINGS = ("gamma", "gap_coef", "psi", "intervention_weight", "cosine_cost", "use_reward",
-                 "failure_target", "fused_critics", "num_qvalue_nets",
-                 "has_disturbance_critic", "disturbance_weight")
+LOSS_SETTINGS = ("q_value_bound", "gamma", "num_qvalue_nets", "target_noise", "target_noise_clip", "policy_delay",
+                 "bc_weight", "mask_td_at_takeover_start")
 SELECTOR_SETTINGS = ("epsilon_select", "variance_threshold", "switch_margin", "veto_patience", "imminent_failure")
 
 
@@ -73,10 +71,8 @@ def test_the_takeover_is_the_recipes(readme, recipe):
 
 def test_the_loss_is_the_recipes(readme, recipe):
     mine, theirs = readme["loss"], recipe["loss"]
-    assert type(mine) is type(theirs) is PERLHFLoss
+    assert type(mine) is type(theirs) is ProxyValueLoss
     for name in LOSS_SETTINGS:
         assert getattr(mine, name) == getattr(theirs, name), name
-    assert mine.failure_target == "batch_min"
-    assert torch.equal(mine.target_entropy, theirs.target_entropy) and torch.equal(mine.alpha, theirs.alpha)
-    for params in ("actor_network_params", "qvalue_network_params", "intervention_qvalue_network_params"):
+    for params in ("actor_network_params", "qvalue_network_params"):
         assert shapes(getattr(mine, params)) == shapes(getattr(theirs, params)), params

@@ -294,8 +294,8 @@ def test_a_stalled_car_is_taken_over_after_stall_steps(test_env):
 
 def test_the_stall_speed_is_a_mentor_setting(test_env):
     """SkillProfile.stall_speed reaches the rule: a car at 4 m/s going nowhere is taken over under a 6 m/s stall
-    test, never under the default 2 m/s."""
-    assert make_mentor("professional").rule.stall_speed == 2.0
+    test (as under the default 5 m/s), never under 2 m/s."""
+    assert make_mentor("professional").rule.stall_speed == 5.0
     agent, plan = np.array([0.0, 0.0]), np.array([0.0, 0.5])
     for stall_speed, taken in ((2.0, False), (6.0, True)):
         mentor = make_mentor("professional", stall_speed=stall_speed)

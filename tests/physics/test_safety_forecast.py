@@ -119,16 +119,11 @@ def test_recipe_value_source_forecast():
 
 def test_the_recipe_runs_the_forecast_rule_and_the_ensembles_keep_the_papers():
     """``selector.value=forecast`` builds the rule calibrated on train scenes (latch, physics or recovery, strict,
-    1 m of progress); a patient veto (``veto_patience`` > 1) takes the latch's place; a Q-ensemble keeps each step
-    judged alone."""
+    1 m of progress); a Q-ensemble keeps each step judged alone."""
     cfg = load_config(overrides=["selector.value=forecast"])
     selector = build_selector(cfg, build_value_source(cfg))
     assert (selector.persistence, selector.reference, selector.strict_in_danger, selector.progress_margin,
             selector.veto_patience, selector.epsilon_select) == ("latch", "physics_or_recovery", True, 1.0, 1, -0.5)
-    cfg = load_config(overrides=["selector.value=forecast", "selector.veto_patience=3"])
-    selector = build_selector(cfg, build_value_source(cfg))
-    assert (selector.persistence, selector.reference, selector.strict_in_danger, selector.progress_margin,
-            selector.veto_patience) == ("off", "physics_or_recovery", True, 1.0, 3)
     cfg = load_config(overrides=["selector.value=warmup"])
     selector = build_selector(cfg, build_value_source(cfg))
     assert (selector.persistence, selector.reference, selector.strict_in_danger, selector.progress_margin) == \

@@ -58,7 +58,7 @@ ALGORITHMS: dict[str, Algorithm] = {
     algorithm.name: algorithm
     for algorithm in (
         Algorithm("pe-rlhf", "PE-RLHF", PROXY_Q, "pe_rlhf"),
-        Algorithm("haco", "HACO", PROXY_Q, "pe_rlhf", ("physics.enabled=false",)),
+        Algorithm("haco", "HACO", PROXY_Q, "haco"),
         Algorithm("haim-drl", "HAIM-DRL", PROXY_Q, "haim_drl"),
         Algorithm("pvp", "PVP", PROXY_Q, "pvp"),
         Algorithm("idm-mobil", "IDM-MOBIL", EVALUATE, EVALUATE, policy="idm-mobil", mentor_key=None),

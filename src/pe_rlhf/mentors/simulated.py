@@ -70,7 +70,9 @@ class SkillProfile:
     min_span: int = 10
     steer_tolerance: float = 0.6
     throttle_tolerance: float = 0.6
-    stall_speed: float = 2.0
+    # 5 m/s (2 m/s before issue 41): a person takes over a car that makes no progress; competent drivers' takeovers
+    # are unchanged, a 4 m/s crawler is taken over at 0.86 of its steps (docs/experiments/learner.md)
+    stall_speed: float = 5.0
     seek_takes_over: bool = False
 
     def __post_init__(self) -> None:

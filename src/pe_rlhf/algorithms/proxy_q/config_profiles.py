@@ -30,11 +30,12 @@ PROFILES: dict[str, dict[str, Any]] = {
     # `make run`: the cpu profile on a ~10-minute budget (9K env steps, 5K of them warm-up), one
     # evaluation of 10 test episodes at the end, a GIF; `train.py --compare idm-mobil` adds the
     # physics policy on the same scenes to the final table.
+    # The recipe's batch (128, PE-RLHF's) stays; no actor picking (its evaluations would not fit the budget).
     "quick": {
         "collector": {"total_frames": 9000, "warmup_steps": 5000},
-        "replay_buffer": {"batch_size": 256},
         "eval": {"every_frames": 0, "episodes": 10, "video": True},
         "checkpoint": {"every_frames": 3000},
+        "actor_selection": {"every_frames": 0},
     },
     # CI: the whole loop (warm-up, updates, eval, checkpoint) in about a minute. No test-episode GIF:
     # filming it was ~45% of a smoke run's CPU time (cProfile, 2026-12-06); eval.video=true films it.
@@ -46,6 +47,7 @@ PROFILES: dict[str, dict[str, Any]] = {
         "loss": {"hidden": [32, 32]},
         "eval": {"every_frames": 300, "episodes": 1, "video": False},
         "checkpoint": {"every_frames": 300, "keep": 1},
+        "actor_selection": {"every_frames": 0},
     },
 }
 

@@ -137,9 +137,11 @@ class CollectorConfig:
 @dataclass
 class ReplayBufferConfig:
     size: int = knob(100000, rule_int(1))
-    batch_size: int = knob(1024, rule_int(1))
-    # null: one uniform buffer; a share s: takeover rows kept apart, up to s of every batch (authors' code: 0.5)
-    takeover_share: Optional[float] = knob(None, rule_optional(rule_number(0, 1)))
+    # PE-RLHF's 128 with the proxy values (PVP's batch; calibrated on train scenes: docs/experiments/learner.md); the
+    # paper's loss 1024 (its appendix; recipes/haco)
+    batch_size: int = knob(128, rule_int(1))
+    # null: one uniform buffer; a share s: takeover rows kept apart, up to s of every batch (authors' code and PVP: 0.5)
+    takeover_share: Optional[float] = knob(0.5, rule_optional(rule_number(0, 1)))
 
 
 @dataclass
@@ -254,6 +256,16 @@ class CheckpointConfig:
 
 
 @dataclass
+class PickedActorConfig(ActorSelectionConfig):
+    """Picking the run's actor on train scenes (:mod:`pe_rlhf.runtime.actor_selection`): PE-RLHF keeps the best of its
+    5K-frame snapshots (train scenes 0-49), since a seed can lose late what it had learned (docs/experiments/learner.md:
+    picked on train scenes 0-24, on 25-49 the picked actors scored 0.64 / 0.60 / 0.52 against the last ones' 0.64 /
+    0.52 / 0.20, seeds 0-2)."""
+
+    every_frames: int = knob(5000, rule_int(0))  # 0: the last actor is the run's actor
+
+
+@dataclass
 class RecipeConfig:
     """The proxy-Q recipes' config: the paper's values (spec §3, the appendix hyper-parameter table)."""
 
@@ -269,13 +281,13 @@ class RecipeConfig:
     collector: CollectorConfig = field(default_factory=CollectorConfig)
     replay_buffer: ReplayBufferConfig = field(default_factory=ReplayBufferConfig)
     optim: OptimConfig = field(default_factory=OptimConfig)
-    # the settings of loss.objective's loss (LOSSES): loss.objective=proxy_value brings ProxyValueLoss's
-    loss: PaperLossConfig = field(default_factory=PaperLossConfig)
+    # the settings of loss.objective's loss (LOSSES): proxy_value (ProxyValueLoss) or paper (PERLHFLoss)
+    loss: ProxyValueLossConfig = field(default_factory=ProxyValueLossConfig)
     disturbance: DisturbanceOff = field(default_factory=DisturbanceOff)
     logger: LoggerConfig = field(default_factory=LoggerConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
     checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)
-    actor_selection: ActorSelectionConfig = field(default_factory=ActorSelectionConfig)
+    actor_selection: PickedActorConfig = field(default_factory=PickedActorConfig)
 
 
 def _fields(schema: type, prefix: str = ""):
@@ -291,7 +303,7 @@ _GROUPS = {cls.__name__: cls for cls in (MentorConfig, PhysicsSettings, Selector
                                          CollectorConfig,
                                          ReplayBufferConfig, OptimConfig, PaperLossConfig, ProxyValueLossConfig,
                                          DisturbanceOff, DisturbanceConfig, LoggerConfig, EvalConfig,
-                                         CheckpointConfig, ActorSelectionConfig)}
+                                         CheckpointConfig, ActorSelectionConfig, PickedActorConfig)}
 
 class VariantGroup(NamedTuple):
     """A group whose settings depend on one of its fields: ``field``, ``classes`` (``{variant: the group's
@@ -328,7 +340,7 @@ def variant_defaults(group: str, variant: Any) -> dict[str, Any]:
 
 def defaults() -> dict[str, Any]:
     """The schema's defaults as a plain nested dict (a new copy each call): each variant group at its default
-    variant (``selector.value=forecast``, ``loss.objective=paper``, ``disturbance.enabled=false``)."""
+    variant (``selector.value=forecast``, ``loss.objective=proxy_value``, ``disturbance.enabled=false``)."""
     return dataclasses.asdict(RecipeConfig())
 
 
