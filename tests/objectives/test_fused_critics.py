@@ -158,13 +158,26 @@ def test_only_recognised_critics_on_a_flat_batch_outside_autocast_are_fused():
     loss(batch.clone())  # and the mixed loss runs
 
 
-def test_the_recipe_field_reaches_the_loss():
-    """``loss.fused_critics`` (default true) in the recipe config picks the path of the loss it builds."""
+def test_the_recipe_field_reaches_the_loss(tmp_path):
+    """The recipe's PERLHFLoss (``loss.objective=paper``; the default objective, proxy_value, has no fused path)
+    takes the fused path. The field ``loss.fused_critics`` that picked it was retired (issue 43): refused on the
+    command line, dropped from a run's saved config, whose loss is then fused as well."""
+    from omegaconf import OmegaConf
+
     from pe_rlhf.algorithms.proxy_q import builders
     from pe_rlhf.algorithms.proxy_q.config import load_config
+    from pe_rlhf.runtime.config_rules import ConfigError
 
-    for value, expected in (("true", True), ("false", False)):
-        cfg = load_config(overrides=["profile=smoke", f"loss.fused_critics={value}"])
-        loss, _ = builders.build_loss(cfg, builders.build_actor(cfg))
-        assert loss.fused_critics is expected and bool(loss._plans) is expected
-    assert load_config(overrides=["profile=smoke"]).loss.fused_critics is True
+    cfg = load_config(overrides=["profile=smoke", "loss.objective=paper"])
+    loss, _ = builders.build_loss(cfg, builders.build_actor(cfg))
+    assert isinstance(loss, PERLHFLoss) and loss.fused_critics is True and bool(loss._plans)
+    with pytest.raises(ConfigError, match="unknown config key 'loss.fused_critics'"):
+        load_config(overrides=["profile=smoke", "loss.objective=paper", "loss.fused_critics=false"])
+    saved = OmegaConf.to_container(cfg)
+    saved["loss"]["fused_critics"] = False  # a run folder's config.yaml from before issue 43
+    path = tmp_path / "config.yaml"
+    path.write_text(OmegaConf.to_yaml(OmegaConf.create({"algorithm": "pe-rlhf", **saved})))
+    old = load_config(path, apply_profile=False)
+    assert "fused_critics" not in old.loss
+    loss, _ = builders.build_loss(old, builders.build_actor(old))
+    assert loss.fused_critics is True and bool(loss._plans)

@@ -26,6 +26,12 @@ TINY = ["profile=smoke", "optim.device=cpu", "env.horizon=50", "collector.frames
         "checkpoint.keep=2"]
 
 
+# The replay rows in collection order, for the tests that index them by frame: one uniform buffer. The recipe's
+# default (replay_buffer.takeover_share=0.5) keeps takeover rows in a buffer of their own, and nothing in a row says
+# which frame it was, so checkpoint_contents returns that layout's takeover rows first, then the agent's (each in
+# collection order): enough for the tests that compare two runs' checkpoints whole, not for ``replay[frame]``.
+UNIFORM_REPLAY = "replay_buffer.takeover_share=null"
+
 KILL_SEED_VAR = "PE_RLHF_KILL_SEED"
 
 
@@ -60,20 +66,27 @@ def start_training(out: Path, *overrides: str) -> subprocess.Popen:
 
 
 def checkpoint_contents(ckpt: Path) -> dict:
-    """Everything a checkpoint holds, loaded: tensors, RNG, state, the replay buffers' contents."""
+    """Everything a checkpoint holds, loaded: tensors, RNG, state, the replay buffers' contents. The learner's
+    buffer is built as the run built it: with ``replay_buffer.takeover_share`` set, its takeover rows then its
+    agent's (see :data:`UNIFORM_REPLAY`)."""
     import torch
 
     from pe_rlhf.algorithms.proxy_q.builders import build_replay_buffer
+    from pe_rlhf.algorithms.proxy_q.takeover_replay import TakeoverBalancedReplayBuffer
     from pe_rlhf.runtime.checkpoint import load_checkpoint
     from pe_rlhf.algorithms.proxy_q.config import load_config
 
     cfg = load_config(ckpt.parents[1] / "config.yaml", apply_profile=False)
-    buffers = {"replay": build_replay_buffer(cfg), "warmup": build_replay_buffer(cfg)}
+    buffers = {"replay": build_replay_buffer(cfg, balanced=True), "warmup": build_replay_buffer(cfg)}
     load_checkpoint(ckpt, modules={}, optimizers={}, replay_buffers=buffers, strict=False, restore_rng_state=False)
     out = {"tensors": torch.load(ckpt / "tensors.pt", weights_only=True),
            "rng": torch.load(ckpt / "rng.pt", weights_only=True),
            "state": json.loads((ckpt / "state.json").read_text())}
-    out.update({name: buffer[:] for name, buffer in buffers.items()})
+    for name, buffer in buffers.items():
+        if isinstance(buffer, TakeoverBalancedReplayBuffer):
+            out[name] = torch.cat([part[:] for part in (buffer.takeover, buffer.agent) if len(part)])
+        else:
+            out[name] = buffer[:]
     for k in TIMING:
         out["state"]["counters"].pop(k)
     return out

@@ -58,8 +58,9 @@ def test_observation_size_follows_the_env_config():
     assert obs_dim(cfg) == env.observation_spec["observation"].shape[-1] == 70
     td = builders.build_actor(cfg)(env.reset())
     assert td["action"].shape == (2,)
+    # (members, rows): the selector's num_members (the schema's 5; the smoke profile set 2 until issue 43)
     assert builders.build_value_source(cfg).values(td["observation"].unsqueeze(0), td["action"].unsqueeze(0)).shape \
-        == (2, 1)
+        == (int(cfg.selector.num_members), 1) == (5, 1)
 
 
 @pytest.fixture(scope="module")

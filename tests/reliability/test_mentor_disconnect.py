@@ -10,7 +10,7 @@ import time
 import numpy as np
 import pygame
 import pytest
-from _runs import train
+from _runs import UNIFORM_REPLAY, train
 
 from pe_rlhf.envs import make_gym_env
 from pe_rlhf.mentors.human import HumanMentor
@@ -132,8 +132,9 @@ def test_training_run_survives_a_closed_window_and_checkpoints_at_once(tmp_path,
 
     monkeypatch.setattr(HumanMentor, "decide", decide)
     out = tmp_path / "run"
+    # HACO as recipes/haco runs it (the paper's loss, one uniform buffer: the rows in collection order below)
     final = train(out, "mentor.name=human", "mentor.kwargs.fps=0", "collector.realtime_hz=0",
-                  "optim.async_updates=false", "physics.enabled=false",
+                  "optim.async_updates=false", "physics.enabled=false", "loss.objective=paper", UNIFORM_REPLAY,
                   "collector.warmup_steps=0", "collector.total_frames=150", "checkpoint.every_frames=1000")
     assert final["training"]["frames"] == 150 and len(seen) == 150
     ckpt = out / "checkpoints" / "ckpt_000000075"

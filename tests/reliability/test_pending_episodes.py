@@ -18,7 +18,7 @@ from pathlib import Path
 import pytest
 import torch
 from _compare import assert_same
-from _runs import checkpoint_contents, kill_rng, start_training, train
+from _runs import UNIFORM_REPLAY, checkpoint_contents, kill_rng, start_training, train
 from torchrl.collectors import Collector
 from torchrl.envs import GymEnv, StepCounter, TransformedEnv
 from torchrl.envs.utils import RandomPolicy
@@ -31,6 +31,8 @@ from pe_rlhf.algorithms.proxy_q.steps import batch_metrics
 pytestmark = [pytest.mark.usefixtures("one_thread"), pytest.mark.filterwarnings("ignore::UserWarning")]
 
 HORIZON = "env.horizon=20"  # every 25-frame batch holds an episode end
+# the rows in collection order (replay[frame]): one uniform buffer, not the default's takeover rows apart
+ROWS = (HORIZON, UNIFORM_REPLAY)
 
 
 def pendulum_batches(directory: Path, max_steps: int, frames_per_batch: int, batches: int):
@@ -92,7 +94,7 @@ def kill_with_pending_episode(out: Path, after: int, timeout: float = 240.0) -> 
     """Train in a child and SIGKILL it while the batch it is collecting starts at or after frame
     ``after``, holds a finished episode (a pending file) and is not journaled yet. The child is
     stopped (SIGSTOP) to check that on a still disk. Returns the pending file's ``(start, end)``."""
-    proc = start_training(out, "collector.total_frames=400", HORIZON)
+    proc = start_training(out, "collector.total_frames=400", *ROWS)
     journal_dir = out / "checkpoints" / "journal"
     deadline = time.time() + timeout
     try:
@@ -129,7 +131,7 @@ def test_sigkill_keeps_the_episodes_that_ended_in_the_batch_being_collected(tmp_
 
     final = train(killed, f"collector.total_frames={end}", resume=True)
     assert final["training"]["frames"] == end  # the journal's batches, then the pending episode's steps
-    train(tmp_path / "uninterrupted", f"collector.total_frames={start + 25}", HORIZON)
+    train(tmp_path / "uninterrupted", f"collector.total_frames={start + 25}", *ROWS)
     resumed = checkpoint_contents(ckpts / f"ckpt_{end:09d}")
     uninterrupted = checkpoint_contents(tmp_path / "uninterrupted" / "checkpoints" / f"ckpt_{start + 25:09d}")
     assert len(resumed["replay"]) == end

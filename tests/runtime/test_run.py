@@ -20,7 +20,7 @@ from pe_rlhf.envs import DrivingConfig
 from pe_rlhf.envs.observation import observation_size
 from pe_rlhf.modules.networks import make_actor
 from pe_rlhf.runtime.checkpoint import list_checkpoints
-from pe_rlhf.runtime.recipe import report_final
+from pe_rlhf.runtime.recipe import RunOptions, report_final
 from pe_rlhf.durable import load_tensors
 from pe_rlhf.runtime.run import ACTOR_FILE, Learner, Run, next_multiple
 
@@ -236,7 +236,8 @@ def test_the_actor_picked_on_train_scenes_is_the_best_snapshot_not_the_last(tmp_
     assert rows[50]["actor_selection/route_completion"] == scores[50]
     # the recipes' final table: the last actor's row above the picked one's, and which frames they are
     capsys.readouterr()
-    report_final(tmp_path, "regression", final, None, _cfg())
+    # the recipe flags as a recipe passes them (no --compare, no --shield): RunOptions, not the fake config
+    report_final(tmp_path, "regression", final, _cfg(), RunOptions())
     out = capsys.readouterr().out
     assert f"regression: the actor of frame {picked}, picked on 1 train scenes" in out
     assert "'last': the actor of frame 300" in out and out.index(" last ") < out.index(" regression ")

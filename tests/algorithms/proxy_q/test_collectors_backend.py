@@ -40,23 +40,31 @@ def multisync_run(one_thread_module):
     loss, soft_update = builders.build_loss(cfg, actor)
     optimizers = builders.build_optimizers(cfg, loss)
     collector = builders.build_collector(cfg, None, actor, TOTAL_FRAMES, value_source=value_source)
-    run = {"batches": []}
+    run = {"batches": [], "out_key": actor_output(actor)}
     try:
         for i, batch in enumerate(collector):
             run["batches"].append(batch.clone())
-            if i == 0:  # a real update, then sync: the next batch must be acted by the updated actor
+            if i == 0:  # real updates, then sync: the next batch must be acted by the updated actor
                 before = [p.detach().clone() for p in actor.parameters()]
-                update(loss, optimizers, soft_update, batch.reshape(-1), max_grad_norm=None)
+                # the recipe's ProxyValueLoss (TD3) steps its actor on every policy_delay-th update: hold one
+                for _ in range(getattr(loss, "policy_delay", 1)):
+                    update(loss, optimizers, soft_update, batch.reshape(-1), max_grad_norm=None)
                 run["actor_changed"] = any(not torch.equal(a, p) for a, p in zip(before, actor.parameters()))
                 builders.sync_policy(collector)
             elif i == 1:
                 with torch.no_grad():
-                    run["main_loc"] = actor(batch.select("observation").clone()).get("loc")
+                    run["main_out"] = actor(batch.select("observation").clone()).get(run["out_key"])
                     for p in value_source.parameters():  # in place, after the workers started
                         p.fill_(float("nan"))
     finally:
         builders.shutdown_collector(collector)
     return run
+
+
+def actor_output(actor) -> str:
+    """The key of the actor's deterministic output: the paper's Gaussian mean ``loc`` (its action is sampled), the
+    recipe's deterministic actor's ``action`` (``loss.objective=proxy_value``, no exploration noise)."""
+    return "loc" if "loc" in actor.out_keys else "action"
 
 
 def _mentor_chosen(batch) -> tuple[int, int]:
@@ -95,8 +103,8 @@ def test_fitted_ensemble_weights_reach_the_workers(multisync_run):
 
 def test_policy_weights_reach_the_workers_after_sync(multisync_run):
     assert multisync_run["actor_changed"]
-    worker_loc = multisync_run["batches"][1].get("loc")
-    torch.testing.assert_close(worker_loc, multisync_run["main_loc"], rtol=1e-5, atol=1e-5)
+    worker_out = multisync_run["batches"][1].get(multisync_run["out_key"])
+    torch.testing.assert_close(worker_out, multisync_run["main_out"], rtol=1e-5, atol=1e-5)
 
 
 def test_invalid_backend_combinations_name_the_field():

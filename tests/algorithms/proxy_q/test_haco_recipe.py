@@ -1,4 +1,5 @@
-"""The HACO recipe (``recipes/haco``): the PE-RLHF recipe without physics and selector, as the sweeps' ``haco``."""
+"""The HACO recipe (``recipes/haco``): the PE-RLHF recipe's loop without physics and selector, with the paper's loss,
+as the sweeps' ``haco``."""
 
 from __future__ import annotations
 
@@ -20,9 +21,12 @@ def test_the_recipe_is_the_sweeps_haco_and_builds_no_selector():
     from pe_rlhf.apps.sweeps.methods import builtin_methods
 
     recipe = load_config(RECIPE_DIR / "config.yaml", ["profile=cpu", "seed=3"])
-    sweep = load_config(None, ["profile=cpu", "seed=3", *builtin_methods()["haco"].overrides])
-    assert to_container(recipe) == to_container(sweep)
+    assert builtin_methods()["haco"].recipe == "haco" and not builtin_methods()["haco"].overrides
     assert method_name(recipe) == "HACO"
+    # the PE-RLHF recipe's config with physics off and the learner as the paper has it (issue 41 changed PE-RLHF's)
+    paper_learner = ["physics.enabled=false", "loss.objective=paper", "replay_buffer.takeover_share=null",
+                     "actor_selection.every_frames=0"]
+    assert to_container(recipe) == to_container(load_config(None, ["profile=cpu", "seed=3", *paper_learner]))
     env = builders.build_train_env(recipe, driving_config(recipe), build_mentor(recipe),
                                    builders.build_value_source(recipe), builders.build_physics(recipe))
     intervention = builders.find_transform(env, InterventionTransform)

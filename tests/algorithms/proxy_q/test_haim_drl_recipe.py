@@ -36,7 +36,7 @@ def test_builders_add_the_transform_after_the_takeover_and_a_disturbance_critic(
     loss, _ = builders.build_loss(cfg, builders.build_actor(cfg))
     assert loss.has_disturbance_critic and loss.disturbance_weight == 1.0
     assert "disturbance_qvalue" in builders.build_optimizers(cfg, loss)
-    pe_rlhf = load_config(overrides=["profile=smoke"])
+    pe_rlhf = load_config(overrides=["profile=smoke", "loss.objective=paper"])  # the paper's loss, no disturbance
     env = builders.build_train_env(pe_rlhf, driving_config(pe_rlhf), build_mentor(pe_rlhf),
                                    builders.build_value_source(pe_rlhf), builders.build_physics(pe_rlhf))
     assert not any(isinstance(t, TrafficDisturbanceCost) for t in env.transform)

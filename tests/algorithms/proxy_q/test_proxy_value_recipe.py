@@ -35,8 +35,12 @@ def test_proxy_value_objective_builds_a_deterministic_actor_its_loss_and_two_opt
     assert any(isinstance(m, torch.nn.LayerNorm) for m in loss.qvalue_network.modules())
     assert set(builders.build_optimizers(cfg, loss)) == {"actor", "qvalue"}
     assert method_name(cfg) == "PE-RLHF"  # the physics-enhanced takeover composes with it unchanged
-    paper = load_config(overrides=["profile=smoke"])
-    assert isinstance(builders.build_loss(paper, builders.build_actor(paper))[0], PERLHFLoss)
+    default = load_config(overrides=["profile=smoke"])  # PE-RLHF's default since issue 41: the proxy values
+    assert default.loss.objective == "proxy_value"
+    assert isinstance(builders.build_loss(default, builders.build_actor(default))[0], ProxyValueLoss)
+    paper = load_config(overrides=["profile=smoke", "loss.objective=paper"])  # the paper's loss (recipes/haco)
+    actor = builders.build_actor(paper)
+    assert isinstance(actor, ProbabilisticActor) and isinstance(builders.build_loss(paper, actor)[0], PERLHFLoss)
 
 
 def test_exploration_noise_perturbs_collection_only():

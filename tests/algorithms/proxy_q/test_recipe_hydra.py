@@ -20,7 +20,7 @@ from pe_rlhf.algorithms.proxy_q.config_schema import PROXY_Q
 ROOT = Path(__file__).resolve().parents[3]
 
 
-@pytest.mark.parametrize("recipe, method", [("pe_rlhf", (True, False, "paper")), ("haco", (False, False, "paper")),
+@pytest.mark.parametrize("recipe, method", [("pe_rlhf", (True, False, "proxy_value")), ("haco", (False, False, "paper")),
                                             ("haim_drl", (False, True, "paper")), ("pvp", (False, False, "proxy_value"))])
 def test_cfg_job_prints_the_composed_config_and_leaves_the_directory_alone(tmp_path, recipe, method):
     proc = run_recipe(recipe, "profile=smoke", "seed=3", "optim.lr=3e-4", "env.traffic_density=0.2", "--cfg", "job",

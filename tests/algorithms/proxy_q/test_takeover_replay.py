@@ -48,10 +48,12 @@ def test_few_takeover_rows_fill_what_they_can_and_an_empty_agent_buffer_gives_al
 
 
 def test_the_share_is_a_recipe_field_and_null_keeps_one_uniform_buffer():
-    cfg = load_config(overrides=["profile=smoke"])
+    # PE-RLHF's default is 0.5 since issue 41 (the authors' code and PVP); null (recipes/haco's) keeps one buffer
+    cfg = load_config(overrides=["profile=smoke", "replay_buffer.takeover_share=null"])
     assert cfg.replay_buffer.takeover_share is None
     assert not isinstance(build_replay_buffer(cfg, balanced=True), TakeoverBalancedReplayBuffer)
-    cfg = load_config(overrides=["profile=smoke", "replay_buffer.takeover_share=0.5"])
+    cfg = load_config(overrides=["profile=smoke"])
+    assert cfg.replay_buffer.takeover_share == 0.5
     assert isinstance(build_replay_buffer(cfg, balanced=True), TakeoverBalancedReplayBuffer)
     assert not isinstance(build_replay_buffer(cfg), TakeoverBalancedReplayBuffer)  # the ensemble's warm-up buffer
 

@@ -45,13 +45,18 @@ def leaves(d: dict, prefix: str = "") -> dict:
 
 
 def test_defaults_load_and_validate_with_the_paper_values():
+    """The paper's appendix values where the method keeps them; issue 41's calibrated learner (bounded proxy values,
+    batch 128, half takeover rows, the actor picked on train scenes) where it replaced HACO's loss."""
     cfg = load_config()
     validate_config(cfg)
     assert set(GROUPS) <= set(cfg.keys())
     assert cfg.profile == "paper"
-    assert (cfg.loss.gamma, cfg.loss.tau, cfg.optim.lr, cfg.replay_buffer.batch_size) == (0.99, 0.005, 1e-4, 1024)
+    assert (cfg.loss.gamma, cfg.loss.tau, cfg.optim.lr) == (0.99, 0.005, 1e-4)
+    assert (cfg.loss.objective, cfg.loss.q_value_bound, cfg.replay_buffer.batch_size,
+            cfg.replay_buffer.takeover_share, cfg.actor_selection.every_frames) == ("proxy_value", 1.0, 128, 0.5, 5000)
     assert (cfg.collector.frames_per_batch, cfg.collector.warmup_steps) == (100, 10000)
-    assert (cfg.loss.gap_coef, epsilon_select(cfg), cfg.loss.psi, cfg.loss.intervention_weight) == (
+    paper = load_config(overrides=["loss.objective=paper"])
+    assert (paper.loss.gap_coef, epsilon_select(cfg), paper.loss.psi, paper.loss.intervention_weight) == (
         10.0, -0.5, 1.0, 1.0)  # epsilon_select: null, the default value source's own (forecast: -0.5 s)
     assert cfg.selector.value == "forecast"
     assert driving_config(cfg) == DrivingConfig(lane_features=True)  # every Table-1 row uses the lane summary
@@ -83,11 +88,12 @@ def test_every_field_has_a_validation_rule_its_default_passes():
 
 
 def test_a_variant_group_shows_its_variants_settings_and_switches_on_its_field():
-    proxy = load_config(overrides=["loss.objective=proxy_value", "loss.bc_weight=0.5"])
-    assert list(proxy.loss) == list(variant_defaults("loss", "proxy_value"))  # the paper's settings went
-    assert proxy.loss.bc_weight == 0.5 and proxy.loss.q_value_bound == 1.0
-    assert list(load_config().loss) == list(variant_defaults("loss", "paper"))
-    haim = load_config(overrides=["physics.enabled=false", "disturbance.enabled=true", "disturbance.weight=2"])
+    paper = load_config(overrides=["loss.objective=paper", "loss.gap_coef=5"])
+    assert list(paper.loss) == list(variant_defaults("loss", "paper"))  # the proxy-value settings went
+    assert paper.loss.gap_coef == 5 and paper.loss.psi == 1.0
+    assert list(load_config().loss) == list(variant_defaults("loss", "proxy_value"))
+    haim = load_config(overrides=["physics.enabled=false", "loss.objective=paper", "disturbance.enabled=true",
+                                  "disturbance.weight=2"])
     assert list(haim.disturbance) == list(variant_defaults("disturbance", True)) and haim.disturbance.weight == 2
     assert list(load_config().disturbance) == ["enabled"]
     assert list(load_config().selector) == ["value", "epsilon_select"]  # the forecast has no ensemble
@@ -149,7 +155,7 @@ def test_save_and_reload_round_trip(tmp_path):
 
 
 def test_a_saved_config_records_the_method_and_refuses_values_that_contradict_it(tmp_path):
-    haco = load_config(overrides=["profile=smoke", "physics.enabled=false"])
+    haco = load_config(overrides=["profile=smoke", "physics.enabled=false", "loss.objective=paper"])
     path = save_config(haco, tmp_path / "config.yaml", algorithm_name(haco))
     assert path.read_text().startswith("algorithm: haco\n")  # the registry name, first
     assert to_container(load_config(path, apply_profile=False)) == to_container(haco)  # read apart from the values
@@ -163,7 +169,8 @@ def test_a_saved_config_records_the_method_and_refuses_values_that_contradict_it
 def test_cpu_profile_changes_the_documented_fields():
     paper, cpu = load_config(), load_config(overrides=["profile=cpu"])
     assert cpu.profile == "cpu"
-    assert cpu.replay_buffer.batch_size == 256 < paper.replay_buffer.batch_size
+    assert cpu.replay_buffer.batch_size == 256  # the paper loss's 1024 cut for 2 cores (PE-RLHF's own: 128)
+    assert paper.replay_buffer.batch_size == 128
     assert cpu.optim.updates_per_batch == 100  # the paper's update-to-data ratio is kept
     assert list(cpu.loss.hidden) == [256, 256]
     assert (cpu.eval.episodes, cpu.eval.every_frames, cpu.eval.video) == (20, 10000, False)
@@ -173,7 +180,8 @@ def test_cpu_profile_changes_the_documented_fields():
 def test_quick_profile_is_make_runs_ten_minute_budget():
     quick = load_config(overrides=["profile=quick"])
     assert quick.collector.total_frames == 9000 and quick.collector.warmup_steps == 5000
-    assert quick.replay_buffer.batch_size == 256 and quick.eval.video and quick.eval.every_frames == 0
+    assert quick.replay_buffer.batch_size == 128 and quick.eval.video and quick.eval.every_frames == 0
+    assert quick.actor_selection.every_frames == 0  # its evaluations would not fit the budget
     assert list(quick.loss.hidden) == [256, 256]  # the paper's networks
 
 
@@ -261,7 +269,8 @@ INVALID = [
     ("loss.hidden", "[]"),
     ("loss.cosine_cost", "2"),
     ("loss.objective", "td3"),
-    ("loss.q_value_bound", "2.0"),  # the proxy-value loss's, set on the paper loss: it would do nothing
+    ("loss.q_value_bound", "0"),
+    ("loss.psi", "2.0"),  # the paper loss's, set on the proxy-value loss: it would do nothing
     ("disturbance.enabled", "maybe"),
     ("disturbance.threshold", "4"),  # the disturbance cost's, with it off: it would do nothing
     ("logger.backends", "[csv,neptune]"),
@@ -335,14 +344,17 @@ def test_validate_rejects_hand_built_configs_with_unknown_groups():
 
 def test_method_names():
     assert method_name(load_config()) == "PE-RLHF"
-    haco = load_config(overrides=["physics.enabled=false"])
+    assert method_name(load_config(overrides=["loss.objective=paper"])) == "PE-RLHF"  # the paper's loss
+    haco = load_config(overrides=["physics.enabled=false", "loss.objective=paper"])
     assert method_name(haco) == "HACO"
     no_ensemble = load_config(overrides=["selector.value=warmup", "selector.num_members=1"])  # the ablation
     assert method_name(no_ensemble) == "PE-RLHF"
-    assert method_name(load_config(overrides=["physics.enabled=false", "disturbance.enabled=true"])) == "HAIM-DRL"
-    assert method_name(load_config(overrides=["physics.enabled=false", "loss.objective=proxy_value"])) == "PVP"
-    assert method_name(load_config(overrides=["disturbance.enabled=true"])) == "PE-RLHF+disturbance"
-    assert algorithm_name(load_config(overrides=["disturbance.enabled=true"])) == "pe-rlhf"  # a PE-RLHF variant
+    paper = "loss.objective=paper"
+    assert method_name(load_config(overrides=["physics.enabled=false", paper, "disturbance.enabled=true"])) == \
+        "HAIM-DRL"
+    assert method_name(load_config(overrides=["physics.enabled=false"])) == "PVP"
+    assert method_name(load_config(overrides=[paper, "disturbance.enabled=true"])) == "PE-RLHF+disturbance"
+    assert algorithm_name(load_config(overrides=[paper, "disturbance.enabled=true"])) == "pe-rlhf"  # a variant
 
 
 def test_haim_drl_recipe_is_haco_with_the_disturbance_cost():
@@ -351,8 +363,12 @@ def test_haim_drl_recipe_is_haco_with_the_disturbance_cost():
     base = leaves(defaults())
     changed = {k: v for k, v in leaves(to_container(cfg)).items() if k in base and base[k] != v}
     added = {k for k in leaves(to_container(cfg)) if k not in base}  # the disturbance group's settings, now on
-    assert changed == {"physics.enabled": False, "disturbance.enabled": True}
-    assert added == {f"disturbance.{k}" for k in variant_defaults("disturbance", True)} - {"disturbance.enabled"}
+    assert changed == {"physics.enabled": False, "disturbance.enabled": True, "loss.objective": "paper",
+                       "replay_buffer.batch_size": 1024, "replay_buffer.takeover_share": None,
+                       "actor_selection.every_frames": 0}  # HACO's learner as the paper has it
+    paper_loss = {f"loss.{k}" for k in variant_defaults("loss", "paper")} - set(base)
+    assert added == {f"disturbance.{k}" for k in variant_defaults("disturbance", True)} - {"disturbance.enabled"} \
+        | paper_loss
     assert (cfg.disturbance.threshold, cfg.disturbance.horizon) == (5.0, 3.0)  # HAIM-DRL's 5 m/s^2
     assert (cfg.disturbance.weight, cfg.disturbance.num_qvalue_nets) == (1.0, 2)  # its own twin critic
     smoke = load_config(HAIM_DRL_YAML, ["profile=smoke", "disturbance.weight=0.5"])

@@ -374,7 +374,7 @@ def smoke_runs(tmp_path_factory) -> Path:
     tiny = ["profile=smoke", "eval.video=false", "collector.total_frames=200"]
     for seed in (0, 1):
         recipe.main([*tiny, f"seed={seed}", "--out", str(root / "pe" / f"seed_{seed}")])
-    recipe.main([*tiny, "physics.enabled=false", "--out", str(root / "haco" / "seed_0")])
+    recipe.main([*tiny, "physics.enabled=false", "loss.objective=paper", "--out", str(root / "haco" / "seed_0")])
     baseline_main("bc", ["profile=smoke", "optim.updates=50", "--out", str(root / "bc")])
     return root
 

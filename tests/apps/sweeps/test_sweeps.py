@@ -46,8 +46,8 @@ def test_grid_expansion_names_and_overrides():
     assert cell.overrides == ("profile=smoke", "mentor.name=collapsing", "mentor.kwargs.switch_step=100",
                               "selector.epsilon_select=1", "seed=1")
     assert (cell.method.name, cell.mentor, cell.parameter, cell.seed) == ("pe-rlhf", "collapse", "epsilon_select=1", 1)
-    assert by_name["haco__professional__s0"].overrides == (
-        "profile=smoke", "physics.enabled=false", "mentor.name=professional", "seed=0")
+    haco = by_name["haco__professional__s0"]  # recipes/haco: PE-RLHF's loop without physics, the paper's loss
+    assert haco.overrides == ("profile=smoke", "mentor.name=professional", "seed=0") and haco.method.recipe == "haco"
     idm = by_name["idm-mobil__s1"]
     assert idm.overrides == ("profile=smoke", "seed=1") and idm.method.recipe == "evaluate"
     check_cell_configs(cells)  # every override is a valid recipe config
@@ -73,8 +73,8 @@ def test_named_sweep_configs_load_and_validate():
         check_cell_configs(cells)
         counts[spec.name] = len(cells)
     assert counts == {"claims": 2 * 2 * 5 + 5, "claims_forecast": 2 * 5,
-                      "claims_balanced": 2 * 5, "claims_select": 2 * 5, "claims_amateur": 2 * 5,
-                      "claims_collapsing": 2 * 3 + 3, "claims_adversarial": 2 * 3,
+                      "claims_balanced": 2 * 5, "claims_select": 2 * 5, "claims_amateur": 4 * 5,
+                      "claims_collapsing": 4 * 5, "claims_adversarial": 4 * 5,
                       "epsilon_sensitivity": 5 * 2 * 3 + 3, "loss_ablations": 6 * 3, "lower_bound": 4 * 2 * 3 + 3,
                       "mentor_proficiency": 12, "physics_ablation": 9 + 3, "warmup": 2 * 4 * 3,
                       "learner_calibration": 6 * 3, "claims_learner": 5 * 5,
