@@ -158,7 +158,7 @@ def test_smoke_training_with_multisync_writes_finite_metrics(tmp_path):
 
 
 # -- collector.backend=ray on a real local Ray instance --------------------------------------------
-def test_ray_collector_on_local_ray_acts_with_the_pushed_value_estimator():
+def test_ray_collector_on_local_ray_acts_with_the_pushed_value_estimator(monkeypatch):
     """Two Ray workers collect PE-RLHF batches; after the learner's ensemble is pushed with NaN weights
     (``push_value_source_weights``, what the trainer does after the warm-up fit), every takeover in the next
     batches executes physics: the workers select with the learner's estimator, not their own copies."""
@@ -167,6 +167,7 @@ def test_ray_collector_on_local_ray_acts_with_the_pushed_value_estimator():
                                  "collector.frames_per_batch=50", "collector.warmup_steps=2", "selector.value=warmup",
                                  "selector.epsilon_select=-1e9", "mentor.name=adversarial"])
     value_source, actor = builders.build_value_source(cfg), builders.build_actor(cfg)
+    monkeypatch.setenv("RAY_worker_niceness", "0")  # Ray's default 15 starves the workers behind other tests
     ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
     batches = []
     try:

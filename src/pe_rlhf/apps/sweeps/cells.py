@@ -91,10 +91,16 @@ def expand(spec: SweepSpec) -> list[Cell]:
 
 def check_cell_configs(cells: list[Cell]) -> None:
     """Load every cell's recipe config (validated, as the recipe will): a bad override fails here, naming
-    the cell and the field, before anything runs."""
+    the cell and the field, before anything runs. Cells that differ only by their seed (an integer the sweep
+    config has already checked) are loaded once."""
     from pe_rlhf.runtime.config_rules import ConfigError
 
+    checked = set()
     for cell in cells:
+        key = (cell.method.recipe, cell.method.policy, tuple(o for o in cell.overrides if not o.startswith("seed=")))
+        if key in checked:
+            continue
+        checked.add(key)
         try:
             _load_config(cell)
         except (ConfigError, ValueError) as e:
