@@ -21,7 +21,7 @@ from pe_rlhf.algorithms.proxy_q.config import load_config
 pytestmark = [pytest.mark.usefixtures("one_thread"), pytest.mark.filterwarnings("ignore::UserWarning")]
 
 LOSSES = {"proxy_value": ProxyValueLoss, "paper": PERLHFLoss}  # loss.objective -> its loss (the default first)
-# a term only one of the losses has where there is one: the paper's intervention critic
+# the term poisoned in each loss: the proxy-value critics', the paper's intervention critic
 POISONED_TERM = {"proxy_value": "loss_qvalue", "paper": "loss_intervention_qvalue"}
 # the optimizer whose step the parameter test follows: the paper's alpha (SAC's), else the critics'
 STEPPED = {"proxy_value": "qvalue", "paper": "alpha"}
