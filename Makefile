@@ -24,10 +24,10 @@ run: $(STAMP)
 
 # A worker per core (pytest-xdist), whole test files per worker so that each module fixture runs once (loadgroup's
 # xdist_group does not group under pytest 9: it renames `_nodeid`); then the tests that time themselves, alone,
-# so that no other worker steals their cycles.
+# so that no other worker steals their cycles (only the files that have such tests are collected again).
 test: $(STAMP)
 	SDL_VIDEODRIVER=dummy $(PY) -m pytest -q -n auto --dist loadfile -m 'not slow and not timing'
-	SDL_VIDEODRIVER=dummy $(PY) -m pytest -q -m timing
+	SDL_VIDEODRIVER=dummy $(PY) -m pytest -q -m timing $$(grep -rl --include='test_*.py' 'mark.timing' tests)
 	$(MAKE) --no-print-directory docs
 
 # The docs site (mkdocs.yml, docs/): strict, so a broken link, anchor or docstring fails; built into site/.

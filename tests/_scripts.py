@@ -36,3 +36,22 @@ def run_recipe(recipe: str, *argv: str, cwd: Path) -> subprocess.CompletedProces
     """``python recipes/<recipe>/train.py *argv`` in a fresh process from ``cwd`` (output captured, 300 s)."""
     return subprocess.run([sys.executable, str(ROOT / "recipes" / recipe / "train.py"), *argv], cwd=cwd,
                           env=SCRIPT_ENV, capture_output=True, text=True, timeout=300, check=False)
+
+
+def run_recipe_here(recipe: str, *argv: str, monkeypatch, capsys) -> tuple[int, str, str]:
+    """``python recipes/<recipe>/train.py *argv`` as ``__main__`` in this process (the imports are paid once):
+    ``(exit code, stdout, stderr)``. The script's own command line, not a fresh interpreter: one test a path
+    keeps :func:`run_recipe` for the process itself (its exit status, nothing imported before it)."""
+    import runpy
+
+    script = ROOT / "recipes" / recipe / "train.py"
+    monkeypatch.delenv("PE_RLHF_DEBUG", raising=False)
+    monkeypatch.setattr(sys, "argv", [str(script), *argv])
+    capsys.readouterr()
+    code = 0
+    try:
+        runpy.run_path(str(script), run_name="__main__")
+    except SystemExit as exit_:
+        code = exit_.code if isinstance(exit_.code, int) else (0 if exit_.code is None else 1)
+    out, err = capsys.readouterr()
+    return code, out, err

@@ -12,13 +12,14 @@ from pe_rlhf.apps.cli import main
 
 def test_evaluate_shield_reports_override_share_and_latency(tmp_path, capsys):
     alone, shielded = tmp_path / "alone.json", tmp_path / "shielded.json"
-    args = ["evaluate", "--policy", "never-brake", "--seeds", "2", "--no-progress"]
+    args = ["evaluate", "--policy", "never-brake", "--seeds", "5", "--no-progress"]
     assert main([*args, "--json", str(alone)]) == 0
     assert main([*args, "--shield", "--json", str(shielded)]) == 0
     a, s = json.loads(alone.read_text()), json.loads(shielded.read_text())
     assert "override_share" not in a
     assert a["safety_violation"]["mean"] > 0  # never braking, it crashes on this train scene
     assert s["safety_violation"]["mean"] == 0 and s["policy"] == "never-brake shielded"
+    assert s["success_rate"]["mean"] == 1.0  # the shield brakes where the policy would not, and hands back
     assert 0 < s["override_share"] < 1
     assert 0 < s["decision_latency_ms"]["mean"] < 50  # >= 20 decisions a second
     detail = s["episodes_detail"][0]

@@ -355,7 +355,7 @@ def test_idm_mobil_on_test_seeds_is_sane():
     env = make_gym_env(DrivingConfig(split="test"))
     policy = IDMMobilPolicy()
     successes, failures = 0, []
-    for seed in range(1000, 1010):
+    for seed in range(1000, 1004):  # 1002 times out behind an obstacle (1000 steps): a failure the test accepts
         env.reset(options={"scene_seed": seed})
         policy.reset()
         while True:
@@ -372,7 +372,7 @@ def test_idm_mobil_on_test_seeds_is_sane():
             reasons = [k for k in ("crash_vehicle", "crash_object", "out_of_road") if info[k]]
             assert reasons or truncated, (seed, info)
             failures.append((seed, reasons or ["timeout"]))
-    assert successes >= 3, failures
+    assert successes >= 2, failures
 
 
 # --------------------------------------------------------------------------- 10. TorchRL module

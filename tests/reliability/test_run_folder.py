@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 from _runs import RECIPE, start_training
-from _scripts import run_recipe
+from _scripts import run_recipe, run_recipe_here
 
 from pe_rlhf.runtime.run_folder import HOLDER_FILE, folder_holder
 
@@ -28,16 +28,18 @@ def wait_for_holder(out: Path, proc, timeout: float = 120.0) -> dict:
     pytest.fail(f"the first run never held {out} (rc {proc.poll()})")
 
 
-def test_a_second_writer_is_refused_in_one_line_naming_the_holder(tmp_path):
+def test_a_second_writer_is_refused_in_one_line_naming_the_holder(tmp_path, monkeypatch, capsys):
     out = tmp_path / "run"
-    first = start_training(out, "collector.total_frames=20000", "seed=0")  # runs past both refusals
+    # runs past both refusals, paced to 10 steps a second: a holder that sleeps leaves the cores to the refused runs
+    first = start_training(out, "collector.total_frames=20000", "collector.realtime_hz=10", "seed=0")
     try:
         holder = wait_for_holder(out, first)
         assert holder["pid"] == first.pid
-        for argv in (["profile=smoke", "seed=1", "--out", str(out)], ["--resume", str(out)]):
-            second = run_recipe("pe_rlhf", *argv, cwd=tmp_path)
-            assert second.returncode == 2, second.stderr[-2000:]
-            lines = second.stderr.strip().splitlines()
+        second = run_recipe("pe_rlhf", "profile=smoke", "seed=1", "--out", str(out), cwd=tmp_path)  # a fresh process
+        resumed = run_recipe_here("pe_rlhf", "--resume", str(out), monkeypatch=monkeypatch, capsys=capsys)  # in here
+        for code, stderr in ((second.returncode, second.stderr), resumed[::2]):
+            assert code == 2, stderr[-2000:]
+            lines = stderr.strip().splitlines()
             assert len(lines) == 1 and lines[0].startswith("error: ") and f"pid {first.pid}" in lines[0], lines
             assert "in use by another run" in lines[0]
         assert first.poll() is None  # the holder ran on, untouched

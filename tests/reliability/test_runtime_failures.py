@@ -14,9 +14,10 @@ from pathlib import Path
 
 import pytest
 from _runs import train
-from _scripts import ROOT, run_recipe
+from _scripts import ROOT, run_recipe, run_recipe_here
 
 from pe_rlhf import durable
+from pe_rlhf.runtime.checkpoint import CheckpointError
 
 pytestmark = [pytest.mark.usefixtures("one_thread"), pytest.mark.filterwarnings("ignore::UserWarning")]
 
@@ -44,7 +45,8 @@ def test_a_truncated_newest_checkpoint_falls_back_to_the_intact_one_before(two_c
     assert final["training"]["frames"] == 250
 
 
-def test_a_runtime_failure_is_one_line_and_exit_2_and_debug_keeps_the_traceback(two_checkpoints, tmp_path):
+def test_a_runtime_failure_is_one_line_and_exit_2_and_debug_keeps_the_traceback(two_checkpoints, tmp_path,
+                                                                               monkeypatch, capsys):
     out = tmp_path / "run"
     shutil.copytree(two_checkpoints, out)
     for step in (100, 200):
@@ -54,8 +56,8 @@ def test_a_runtime_failure_is_one_line_and_exit_2_and_debug_keeps_the_traceback(
     lines = failed.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("error: CheckpointError: ") and "tensors.pt" in lines[0], lines
     assert "--debug shows the traceback" in lines[0]
-    debug = run_recipe("pe_rlhf", "--resume", str(out), "--debug", cwd=tmp_path)
-    assert debug.returncode != 0 and "Traceback (most recent call last)" in debug.stderr
+    with pytest.raises(CheckpointError, match="tensors.pt"):  # raised, not turned into one line: Python prints it
+        run_recipe_here("pe_rlhf", "--resume", str(out), "--debug", monkeypatch=monkeypatch, capsys=capsys)
 
 
 def test_a_failed_atomic_write_reports_its_own_error_not_the_clean_up_s(tmp_path, monkeypatch):

@@ -10,7 +10,7 @@ import pytest
 import yaml
 from omegaconf import OmegaConf
 
-from _scripts import run_recipe
+from _scripts import run_recipe, run_recipe_here
 from pe_rlhf.algorithms.baselines import METHODS, default_config, load_baseline_config
 from pe_rlhf.algorithms.baselines.config import rules
 from pe_rlhf.runtime.config import save_config, to_container
@@ -20,19 +20,32 @@ from pe_rlhf.algorithms.proxy_q.config import load_config
 ROOT = Path(__file__).resolve().parents[3]
 
 
-@pytest.mark.parametrize("method, override", [("sac_lag", "constraint.cost_limit=0.2"), ("iwr", "mentor.name=amateur")])
-def test_cfg_job_prints_the_composed_config_and_leaves_the_directory_alone(tmp_path, method, override):
-    argv = ["profile=smoke", "seed=3", "optim.lr=3e-4", "env.traffic_density=0.2", override]
-    proc = run_recipe(method, *argv, "--cfg", "job", cwd=tmp_path)
+CFG_JOB = ["profile=smoke", "seed=3", "optim.lr=3e-4", "env.traffic_density=0.2"]
+
+
+def test_cfg_job_prints_the_composed_config_and_leaves_the_directory_alone(tmp_path):
+    argv = [*CFG_JOB, "constraint.cost_limit=0.2"]
+    proc = run_recipe("sac_lag", *argv, "--cfg", "job", cwd=tmp_path)  # a fresh process, as a user runs it
     assert proc.returncode == 0, proc.stderr[-2000:]
-    assert yaml.safe_load(proc.stdout) == to_container(load_baseline_config(method, overrides=argv))
+    assert yaml.safe_load(proc.stdout) == to_container(load_baseline_config("sac_lag", overrides=argv))
     assert list(tmp_path.iterdir()) == []  # no outputs/, .hydra/, multirun/ or log file
 
 
-def test_a_bad_value_from_the_script_is_one_line_naming_field_value_and_what_is_allowed(tmp_path):
-    proc = run_recipe("bc", "optim.lr=-1", "--out", str(tmp_path / "run"), cwd=tmp_path)
-    assert proc.returncode == 2
-    assert proc.stderr == "error: optim.lr=-1 is invalid: must be a finite number > 0\n"
+def test_another_family_prints_its_own_composed_config(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    argv = [*CFG_JOB, "mentor.name=amateur"]
+    code, out, _ = run_recipe_here("iwr", *argv, "--cfg", "job", monkeypatch=monkeypatch, capsys=capsys)
+    assert code == 0 and yaml.safe_load(out) == to_container(load_baseline_config("iwr", overrides=argv))
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_bad_value_from_the_script_is_one_line_naming_field_value_and_what_is_allowed(tmp_path, monkeypatch,
+                                                                                       capsys):
+    monkeypatch.chdir(tmp_path)
+    code, _, err = run_recipe_here("bc", "optim.lr=-1", "--out", str(tmp_path / "run"), monkeypatch=monkeypatch,
+                                   capsys=capsys)
+    assert code == 2
+    assert err == "error: optim.lr=-1 is invalid: must be a finite number > 0\n"
     assert list(tmp_path.iterdir()) == []
 
 

@@ -46,9 +46,9 @@ def test_builders_add_the_transform_after_the_takeover_and_a_disturbance_critic(
 
 
 def test_smoke_run_writes_every_output(tmp_path):
-    final = _load_recipe().main(["profile=smoke", "eval.video=true", "--out", str(tmp_path)])
-    for name in ("config.yaml", "metrics.csv", "final_eval.json", "training_curves.png", "actor.safetensors",
-                 "test_episode.gif"):
+    # no GIF (about 45% of a smoke run's CPU; the writer is the runtime's: test_training_smoke films a run)
+    final = _load_recipe().main(["profile=smoke", "--out", str(tmp_path)])
+    for name in ("config.yaml", "metrics.csv", "final_eval.json", "training_curves.png", "actor.safetensors"):
         assert (tmp_path / name).exists(), name
     saved = load_config(tmp_path / "config.yaml", apply_profile=False)
     assert saved.disturbance.enabled and not saved.physics.enabled
@@ -65,4 +65,3 @@ def test_smoke_run_writes_every_output(tmp_path):
     assert any(r.get("train/q_disturbance") for r in rows[1:])
     assert json.loads((tmp_path / "final_eval.json").read_text())["episodes"] == 1
     assert final["training"]["frames"] == 300
-    assert 1 <= final["video"]["steps"] <= 100

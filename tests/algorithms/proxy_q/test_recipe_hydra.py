@@ -9,7 +9,7 @@ import pytest
 import yaml
 from omegaconf import OmegaConf
 
-from _scripts import run_recipe
+from _scripts import run_recipe, run_recipe_here
 from pe_rlhf.runtime.config import to_container
 from pe_rlhf.runtime.config_compose import compose_file
 from pe_rlhf.runtime.config_rules import ConfigError
@@ -20,24 +20,40 @@ from pe_rlhf.algorithms.proxy_q.config_schema import PROXY_Q
 ROOT = Path(__file__).resolve().parents[3]
 
 
-@pytest.mark.parametrize("recipe, method", [("pe_rlhf", (True, False, "proxy_value")), ("haco", (False, False, "paper")),
-                                            ("haim_drl", (False, True, "paper")), ("pvp", (False, False, "proxy_value"))])
-def test_cfg_job_prints_the_composed_config_and_leaves_the_directory_alone(tmp_path, recipe, method):
-    proc = run_recipe(recipe, "profile=smoke", "seed=3", "optim.lr=3e-4", "env.traffic_density=0.2", "--cfg", "job",
-                      cwd=tmp_path)
+METHOD_OF = {"pe_rlhf": (True, False, "proxy_value"), "haco": (False, False, "paper"),
+             "haim_drl": (False, True, "paper"), "pvp": (False, False, "proxy_value")}
+CFG_JOB = ["profile=smoke", "seed=3", "optim.lr=3e-4", "env.traffic_density=0.2"]
+
+
+def check_cfg_job(recipe: str, code: int, printed_text: str, folder: Path) -> None:
+    assert code == 0
+    printed = yaml.safe_load(printed_text)
+    assert printed == to_container(load_config(ROOT / "recipes" / recipe / "config.yaml", CFG_JOB))
+    assert (printed["physics"]["enabled"], printed["disturbance"]["enabled"], printed["loss"]["objective"]) == \
+        METHOD_OF[recipe]
+    assert list(folder.iterdir()) == []  # no outputs/, .hydra/, multirun/ or log file
+
+
+def test_cfg_job_prints_the_composed_config_and_leaves_the_directory_alone(tmp_path):
+    proc = run_recipe("pe_rlhf", *CFG_JOB, "--cfg", "job", cwd=tmp_path)  # a fresh process, as a user runs it
     assert proc.returncode == 0, proc.stderr[-2000:]
-    printed = yaml.safe_load(proc.stdout)
-    expected = to_container(load_config(ROOT / "recipes" / recipe / "config.yaml",
-                                        ["profile=smoke", "seed=3", "optim.lr=3e-4", "env.traffic_density=0.2"]))
-    assert printed == expected
-    assert (printed["physics"]["enabled"], printed["disturbance"]["enabled"], printed["loss"]["objective"]) == method
-    assert list(tmp_path.iterdir()) == []  # no outputs/, .hydra/, multirun/ or log file
+    check_cfg_job("pe_rlhf", proc.returncode, proc.stdout, tmp_path)
 
 
-def test_a_bad_value_from_the_script_is_one_line_naming_field_value_and_what_is_allowed(tmp_path):
-    proc = run_recipe("pe_rlhf", "optim.lr=-1", "--out", str(tmp_path / "run"), cwd=tmp_path)
-    assert proc.returncode == 2
-    assert proc.stderr == "error: optim.lr=-1 is invalid: must be a finite number > 0\n"
+@pytest.mark.parametrize("recipe", ["haco", "haim_drl", "pvp"])
+def test_every_recipe_script_prints_its_own_composed_config(recipe, tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    code, out, _ = run_recipe_here(recipe, *CFG_JOB, "--cfg", "job", monkeypatch=monkeypatch, capsys=capsys)
+    check_cfg_job(recipe, code, out, tmp_path)
+
+
+def test_a_bad_value_from_the_script_is_one_line_naming_field_value_and_what_is_allowed(tmp_path, monkeypatch,
+                                                                                       capsys):
+    monkeypatch.chdir(tmp_path)
+    code, _, err = run_recipe_here("pe_rlhf", "optim.lr=-1", "--out", str(tmp_path / "run"), monkeypatch=monkeypatch,
+                                   capsys=capsys)
+    assert code == 2
+    assert err == "error: optim.lr=-1 is invalid: must be a finite number > 0\n"
     assert list(tmp_path.iterdir()) == []
 
 

@@ -19,7 +19,7 @@ import pytest
 import pe_rlhf
 from pe_rlhf.apps.cli import SUBCOMMANDS, build_parser
 from pe_rlhf.apps.cli import main as cli_main
-from _scripts import SCRIPT_ENV
+from _scripts import SCRIPT_ENV, run_recipe_here
 
 ROOT = Path(__file__).resolve().parents[3]
 RECIPES = sorted(p.parent.name for p in (ROOT / "recipes").glob("*/train.py"))
@@ -39,24 +39,34 @@ def pe_rlhf_command() -> list[str]:
 
 
 # -- recipes: the real command line ------------------------------------------------------------------
+def test_recipe_config_error_is_one_line_and_exit_code_2(tmp_path):
+    out = tmp_path / "run"
+    proc = run("recipes/pe_rlhf/train.py", "optim.lr=abc", "--out", str(out))  # a fresh process, as a user runs it
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    assert proc.stderr == "error: optim.lr='abc' is invalid: must be a finite number > 0\n"
+    assert not out.exists()  # nothing was started
+
+
 @pytest.mark.parametrize("recipe, override, message", [
-    ("pe_rlhf", "optim.lr=abc", "error: optim.lr='abc' is invalid: must be a finite number > 0"),
     ("pe_rlhf", "mentor.name=nobody", "error: mentor.name='nobody' is invalid: allowed: ['adversarial', "),
     ("sac_rs", "foo.bar=1", "error: unknown config key 'foo.bar' (command-line override): the config has no 'foo'"),
 ])
-def test_recipe_config_error_is_one_line_and_exit_code_2(tmp_path, recipe, override, message):
+def test_recipe_config_errors_name_the_field_the_value_and_what_is_allowed(tmp_path, monkeypatch, capsys, recipe,
+                                                                          override, message):
     out = tmp_path / "run"
-    proc = run(f"recipes/{recipe}/train.py", override, "--out", str(out))
-    assert proc.returncode == 2, proc.stderr[-2000:]
-    assert proc.stderr.count("\n") == 1 and proc.stderr.startswith(message), proc.stderr
-    assert "Traceback" not in proc.stderr and not out.exists()  # nothing was started
+    code, _, err = run_recipe_here(recipe, override, "--out", str(out), monkeypatch=monkeypatch, capsys=capsys)
+    assert code == 2 and err.count("\n") == 1 and err.startswith(message), err
+    assert not out.exists()
 
 
-def test_recipe_debug_env_var_shows_the_traceback():
-    proc = run("recipes/pe_rlhf/train.py", "optim.lr=abc", PE_RLHF_DEBUG="1")
-    assert proc.returncode == 1
-    assert "Traceback (most recent call last)" in proc.stderr and proc.stderr.rstrip().endswith(
-        "ConfigError: optim.lr='abc' is invalid: must be a finite number > 0")
+def test_recipe_debug_env_var_shows_the_traceback(monkeypatch):
+    from pe_rlhf.runtime.config_rules import ConfigError
+
+    script = ROOT / "recipes" / "pe_rlhf" / "train.py"
+    monkeypatch.setenv("PE_RLHF_DEBUG", "1")
+    monkeypatch.setattr(sys, "argv", [str(script), "optim.lr=abc"])
+    with pytest.raises(ConfigError, match=r"^optim.lr='abc' is invalid: must be a finite number > 0$"):
+        runpy.run_path(str(script), run_name="__main__")  # raised, not turned into one line: Python prints it
 
 
 def test_negative_epsilon_select_is_accepted_and_the_message_states_the_range():
