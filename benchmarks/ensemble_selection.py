@@ -285,7 +285,7 @@ def main(argv=None) -> list[dict]:
                         "action held 1 s must make physics' progress less this, where physics is safe")
     parser.add_argument("--hold-one-lane", action="store_true", help="selector.forecast_hold_one_lane: the hold "
                         "ends once the car has moved one lane width sideways")
-    parser.add_argument("--forecast-recovery", choices=["route", "lanes"], default="route",
+    parser.add_argument("--forecast-recovery", choices=["route", "route_or_straight", "lanes"], default="route",
                         help="selector.forecast_recovery with --value forecast")
     parser.add_argument("--takeover-rates", nargs="*", metavar="DRIVER", default=None,
                         help="instead: each mentor's takeover share watching these drivers (e.g. idm-mobil-oracle "
