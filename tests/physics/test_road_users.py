@@ -50,3 +50,23 @@ def test_a_static_object_stays_and_a_plain_vehicle_keeps_its_velocity():
     expected = np.array([10.0, 2.0]) + 5.0 * 3.0 * np.array([math.cos(0.3), math.sin(0.3)])
     assert forecast.positions[-1, 0] == pytest.approx(expected)
     assert forecast.headings[-1, 0] == pytest.approx(0.3)
+
+
+def test_lanes_or_velocity_forecasts_a_lane_follower_both_ways():
+    """``model="lanes_or_velocity"``: a lane-following car is two paths, along its lanes and straight on at its
+    velocity (a contact with either is a contact); an obstacle is one. ``"velocity"`` is the straight line alone."""
+    from pe_rlhf.envs.traffic import BrokenDownCar
+
+    env = curve_env()
+    car = add_car(env, 30.0, 2, speed=8.0, target_speed=8.0)
+    cone = BrokenDownCar(env.road, np.array([60.0, 0.0]), 0.0)
+    lanes = RoadUsers([car, cone], dt=0.1, steps=STEPS, substeps=2, model="lanes")
+    both = RoadUsers([car, cone], dt=0.1, steps=STEPS, substeps=2, model="lanes_or_velocity")
+    straight = RoadUsers([car, cone], dt=0.1, steps=STEPS, substeps=2, model="velocity")
+    assert (lanes.count, both.count, straight.count) == (2, 3, 2)
+    assert both.positions[:, :2] == pytest.approx(lanes.positions)
+    assert both.positions[:, 2] == pytest.approx(straight.positions[:, 0])
+    assert np.linalg.norm(lanes.positions[-1, 0] - straight.positions[-1, 0]) > 2.5  # the bend: two places
+    assert straight.positions[-1, 1] == pytest.approx([60.0, 0.0])
+    with pytest.raises(ValueError, match="model='swerve'"):
+        RoadUsers([car], dt=0.1, steps=STEPS, substeps=2, model="swerve")

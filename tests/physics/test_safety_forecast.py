@@ -147,7 +147,7 @@ def test_a_hold_of_one_lane_lets_a_lane_change_through():
 def test_lane_recovery_is_never_worse_than_the_route_recovery_on_a_straight():
     env = at_speed(20.0, obstacle_ahead=35.0)
     for action in (THROTTLE, COAST, np.array([0.3, 0.5], np.float32), np.array([-0.3, 0.5], np.float32)):
-        route = time_to_failure(env, action, SafetyForecastConfig(hold=0.3))
+        route = time_to_failure(env, action, SafetyForecastConfig(hold=0.3, recovery="route"))
         lanes = time_to_failure(env, action, SafetyForecastConfig(hold=0.3, recovery="lanes"))
         assert lanes >= route  # the lanes' best includes the current lane's centre
 
@@ -345,8 +345,8 @@ def test_the_recovery_keeps_the_wheels_straight_where_steering_back_runs_into_a_
     env = straight_env(scene_seed=0)
     place_ego(env, 60.0, lane=1, speed=12.0, dheading=0.25)
     add_obstacle(env, 72.0, lane=1)
-    route = SafetyForecastValue()
-    best = SafetyForecastValue(SafetyForecastConfig(recovery="route_or_straight"))
+    route = SafetyForecastValue(SafetyForecastConfig(recovery="route"))
+    best = SafetyForecastValue()  # recovery="route_or_straight"
     assert route.recovery_value(env=env).item() == pytest.approx(0.8)
     assert rollout(env, route)
     assert best.recovery_value(env=env).item() == pytest.approx(3.0)

@@ -94,51 +94,99 @@ def follows_lanes(obj) -> bool:
             and not getattr(obj, "crashed", False) and float(getattr(obj, "speed", 0.0)) > 0.0)
 
 
+MODELS = ("velocity", "lanes", "lanes_or_velocity")  # SafetyForecastConfig.road_users
+
+
 class RoadUsers:
     """The road users ahead of the ego in one forecast, with their poses at every sub-step (module docstring).
 
     ``objects``: the highway-env vehicles and objects; ``dt`` [s] the forecast's step, ``steps`` its length in steps,
-    ``substeps`` the simulator's sub-steps a step. :meth:`near` ``(k, ...)``: those near a point after sub-step ``k``
-    (0: now); ``positions`` ``(K + 1, M, 2)`` and ``headings`` ``(K + 1, M)``: every one's pose at every sub-step."""
+    ``substeps`` the simulator's sub-steps a step; ``model``: a lane-following vehicle drives along its lanes
+    ("lanes"), keeps its velocity ("velocity", the model before), or either ("lanes_or_velocity": it is forecast
+    twice, and a contact with either path is a contact). :meth:`near` ``(k, ...)``: those near a point after sub-step
+    ``k`` (0: now); ``positions`` ``(K + 1, M, 2)`` and ``headings`` ``(K + 1, M)``: every forecast path's pose at
+    every sub-step (``M`` paths: one a road user, two for a lane follower under "lanes_or_velocity")."""
 
-    def __init__(self, objects: list, dt: float, steps: int, substeps: int):
+    def __init__(self, objects: list, dt: float, steps: int, substeps: int, model: str = "lanes"):
+        if model not in MODELS:
+            raise ValueError(f"RoadUsers model={model!r} is invalid: allowed {list(MODELS)}")
+        lanes = [model != "velocity" and follows_lanes(obj) for obj in objects]
+        if model == "lanes_or_velocity":
+            objects = objects + [obj for obj, along in zip(objects, lanes) if along]
+            lanes = lanes + [False] * (len(objects) - len(lanes))
         self.count = len(objects)
         self.lengths = np.array([float(o.LENGTH) for o in objects])
         self.widths = np.array([float(o.WIDTH) for o in objects])
         self.speeds = np.array([float(getattr(o, "speed", 0.0)) for o in objects])
-        self.moving = bool((self.speeds > 0.0).any())
+        self.moving = bool((self.speeds != 0.0).any())
         times = np.arange(steps * substeps + 1) * (dt / substeps)  # every sub-step's instant
-        self.positions = np.empty((len(times), self.count, 2))
-        self.headings = np.empty((len(times), self.count))
-        for m, obj in enumerate(objects):
-            position, heading = np.asarray(obj.position, float), float(obj.heading)
-            if follows_lanes(obj):
-                path, path_heading = cached_path(obj, dt, steps)
-                fine = np.arange(len(times)) / substeps  # in forecast steps
-                self.positions[:, m, 0] = np.interp(fine, np.arange(steps + 1), path[:, 0])
-                self.positions[:, m, 1] = np.interp(fine, np.arange(steps + 1), path[:, 1])
-                self.headings[:, m] = np.interp(fine, np.arange(steps + 1), path_heading)
-            else:  # its velocity, kept (a static object: 0)
-                velocity = self.speeds[m] * np.array([math.cos(heading), math.sin(heading)])
-                self.positions[:, m] = position + times[:, None] * velocity
-                self.headings[:, m] = heading
+        start = np.array([o.position for o in objects], float).reshape(self.count, 2)
+        heading = np.array([float(o.heading) for o in objects])
+        direction = np.stack([np.cos(heading), np.sin(heading)], -1)
+        # every one at its velocity (a static object: 0), then the lane followers along their paths
+        self.positions = start[None] + times[:, None, None] * (self.speeds[:, None] * direction)[None]
+        self.headings = np.broadcast_to(heading, (len(times), self.count)).copy()
+        fine, coarse = np.arange(len(times)) / substeps, np.arange(steps + 1)  # in forecast steps
+        for m in np.flatnonzero(lanes):
+            path, path_heading = cached_path(objects[m], dt, steps)
+            self.positions[:, m, 0] = np.interp(fine, coarse, path[:, 0])
+            self.positions[:, m, 1] = np.interp(fine, coarse, path[:, 1])
+            self.headings[:, m] = np.interp(fine, coarse, path_heading)
         velocities = self.speeds[None, :, None] * np.stack([np.cos(self.headings), np.sin(self.headings)], -1)
-        # Python rows: the contact test reads a few road users a sub-step, where numpy's call overhead dominates
-        self._rows = [list(zip(p.tolist(), h.tolist(), v.tolist())) for p, h, v in
-                      zip(self.positions, self.headings, velocities)]
-        self._sizes = list(zip(self.lengths.tolist(), self.widths.tolist(), self.speeds.tolist()))
+        # Python rows: the contact test reads a few road users a sub-step, where numpy's call overhead dominates;
+        # the standing ones (most of them: cones, broken-down cars) once, the moving ones at every sub-step
+        sizes = list(zip(self.lengths.tolist(), self.widths.tolist(), np.abs(self.speeds).tolist()))
+        moving = np.flatnonzero(self.speeds != 0.0)
+        self._static = [(tuple(start[m]), float(heading[m]), *sizes[m]) for m in np.flatnonzero(self.speeds == 0.0)]
+        self._moving = (moving, [sizes[m] for m in moving], velocities[:, moving])
+        self._rows: list = [None] * len(times)  # built on first use: most forecasts end before the horizon
+        # bounding boxes (x min, y min, x max, y max) and the largest half size and speed: most sub-steps have
+        # nothing near the ego, and one box test says so
+        half = (self.lengths + self.widths) / 2
+        self._static_box = _box(start[self.speeds == 0.0][None])[0], float(half[self.speeds == 0.0].max(initial=0.0))
+        self._moving_box = _box(self.positions[:, moving]), float(half[moving].max(initial=0.0)), \
+            float(np.abs(self.speeds[moving]).max(initial=0.0))
+
+    def _row(self, k: int) -> list:
+        """The moving road users after sub-step ``k`` as Python tuples ``(point, heading, length, width, speed,
+        velocity)``."""
+        row = self._rows[k]
+        if row is None:
+            moving, sizes, velocities = self._moving
+            row = self._rows[k] = [(point, heading, *size, velocity) for point, heading, size, velocity in zip(
+                self.positions[k, moving].tolist(), self.headings[k, moving].tolist(), sizes,
+                velocities[k].tolist())]
+        return row
 
     def near(self, k: int, position, reach: float, speed_dt: float, dt: float) -> list:
         """The road users after sub-step ``k`` (clipped to the horizon) whose centre is within ``reach`` plus half
         their length and width plus their travel over ``dt`` of ``position``, ``speed_dt`` the ego's travel:
         ``[(position (2,), heading, length, width, velocity (2,))]``."""
         x, y = float(position[0]), float(position[1])
+        k = min(k, len(self._rows) - 1)
         out = []
-        for (point, heading, velocity), (length, width, speed) in zip(self._rows[min(k, len(self._rows) - 1)],
-                                                                     self._sizes):
-            if math.hypot(point[0] - x, point[1] - y) <= reach + (length + width) / 2 + speed_dt + speed * dt:
-                out.append((np.array(point), heading, length, width, np.array(velocity)))
+        box, half = self._static_box
+        if _in_box(box, x, y, reach + half + speed_dt):
+            for point, heading, length, width, _ in self._static:
+                if math.hypot(point[0] - x, point[1] - y) <= reach + (length + width) / 2 + speed_dt:
+                    out.append((np.array(point), heading, length, width, np.zeros(2)))
+        boxes, half, speed_max = self._moving_box
+        if _in_box(boxes[k], x, y, reach + half + speed_dt + speed_max * dt):
+            for point, heading, length, width, speed, velocity in self._row(k):
+                if math.hypot(point[0] - x, point[1] - y) <= reach + (length + width) / 2 + speed_dt + speed * dt:
+                    out.append((np.array(point), heading, length, width, np.array(velocity)))
         return out
 
 
-__all__ = ["RoadUsers", "cached_path", "follows_lanes", "lane_following_path"]
+def _box(points: np.ndarray) -> list:
+    """``[(x min, y min, x max, y max)]`` of ``points`` ``(K, M, 2)`` per row (empty rows: a box nothing is in)."""
+    if points.shape[1] == 0:
+        return [(math.inf, math.inf, -math.inf, -math.inf)] * len(points)
+    return np.concatenate([points.min(1), points.max(1)], -1).tolist()
+
+
+def _in_box(box, x: float, y: float, margin: float) -> bool:
+    return box[0] - margin <= x <= box[2] + margin and box[1] - margin <= y <= box[3] + margin
+
+
+__all__ = ["MODELS", "RoadUsers", "cached_path", "follows_lanes", "lane_following_path"]

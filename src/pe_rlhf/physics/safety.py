@@ -31,6 +31,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+import weakref
 from dataclasses import dataclass
 
 import numpy as np
@@ -41,6 +42,7 @@ from pe_rlhf.envs.action import MAX_BRAKING, MAX_STEERING, action_to_controls, c
 from pe_rlhf.envs.driving_env import ROAD_EDGE_MARGIN  # the env's own off-road test, not a copy of it
 from pe_rlhf.envs.geometry import LANE_WIDTH
 from pe_rlhf.physics.followers import Followers
+from pe_rlhf.physics.road_users import MODELS as ROAD_USER_MODELS
 from pe_rlhf.physics.road_users import RoadUsers
 
 NEAR = 60.0  # [m] road users farther than this cannot be reached within a forecast
@@ -60,17 +62,22 @@ class SafetyForecastConfig:
     """``hold`` [s]: the candidate action is held this long; ``horizon`` [s]: the forecast's length;
     ``dt`` [s]: its integration step; ``recovery_braking`` [m/s^2]: deceleration after ``hold``; ``recovery``: the
     recovery's steering (``RECOVERIES``); ``hold_one_lane``: the hold ends once the car has moved one lane sideways;
-    ``followers``: moving road users behind the ego drive on under the IDM (False: they are ignored)."""
+    ``followers``: moving road users behind the ego drive on under the IDM (False: they are ignored);
+    ``road_users``: how a lane-following road user ahead moves (:data:`pe_rlhf.physics.road_users.MODELS`)."""
 
     hold: float = 1.0
     horizon: float = 3.0
     dt: float = 0.1
     recovery_braking: float = MAX_BRAKING
-    recovery: str = "route"
+    recovery: str = "route_or_straight"
     hold_one_lane: bool = False
     followers: bool = True
+    road_users: str = "lanes_or_velocity"
 
     def __post_init__(self) -> None:
+        if self.road_users not in ROAD_USER_MODELS:
+            raise ValueError(f"SafetyForecastConfig.road_users={self.road_users!r} is invalid: allowed "
+                             f"{list(ROAD_USER_MODELS)}")
         if self.recovery not in RECOVERIES:
             raise ValueError(f"SafetyForecastConfig.recovery={self.recovery!r} is invalid: allowed {list(RECOVERIES)}")
         for name in ("hold", "horizon", "dt", "recovery_braking"):
@@ -95,6 +102,24 @@ def _others(env) -> list:
     # a driver behind brakes for us: Followers forecasts it
     return [obj for obj, n, b in zip(candidates, near, behind)
             if n and not (b and float(getattr(obj, "speed", 0.0)) > 0.1)]
+
+
+_ROAD_USERS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # env -> (its road users' state, RoadUsers)
+
+
+def _road_users(env, config: SafetyForecastConfig, steps: int, substeps: int) -> RoadUsers:
+    """:class:`RoadUsers` of :func:`_others`, built once while their state (and the ego's, which selects them) is
+    unchanged: the forecasts of one decision (each candidate, the recovery, the repeated action) share it."""
+    objects = _others(env)
+    key = (config.dt, steps, substeps, config.road_users, tuple(
+        (id(o), float(o.position[0]), float(o.position[1]), float(o.heading), float(getattr(o, "speed", 0.0)),
+         getattr(o, "target_lane_index", None), tuple(getattr(o, "route", None) or ())) for o in objects))
+    hit = _ROAD_USERS.get(env)
+    if hit is not None and hit[0] == key:
+        return hit[1]
+    users = RoadUsers(objects, config.dt, steps, substeps, config.road_users)
+    _ROAD_USERS[env] = (key, users)
+    return users
 
 
 def time_to_failure(env, action, config: SafetyForecastConfig | None = None) -> float:
@@ -152,8 +177,8 @@ class _Forecast:
     @functools.cached_property
     def others(self) -> RoadUsers:
         """The road users ahead and the static objects, their poses at every sub-step (built on first use: the
-        progress forecast never needs them)."""
-        return RoadUsers(_others(self.env), self.config.dt, self.steps, self.substeps)
+        progress forecast never needs them; the forecasts of one decision share them: :func:`_road_users`)."""
+        return _road_users(self.env, self.config, self.steps, self.substeps)
 
     def step(self, state, steering: float, accel: float, i: int):
         """``(state, failed)`` after forecast step ``i`` (one ``dt``): :meth:`advance` in the simulator's
