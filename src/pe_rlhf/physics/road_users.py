@@ -178,6 +178,15 @@ class RoadUsers:
         return out
 
 
+    def clear_of(self, position, reach: float, k: int, dt: float) -> bool:
+        """Whether no moving road user comes within ``reach`` plus its half length and width plus its travel over
+        ``dt`` of ``position`` after sub-step ``k`` (a box test: True is sure, False may be a near miss): a car
+        standing there is safe for the rest of the forecast."""
+        boxes, half, speed_max = self._moving_box
+        x, y, margin = float(position[0]), float(position[1]), reach + half + speed_max * dt
+        return not any(_in_box(box, x, y, margin) for box in boxes[k:])
+
+
 def _box(points: np.ndarray) -> list:
     """``[(x min, y min, x max, y max)]`` of ``points`` ``(K, M, 2)`` per row (empty rows: a box nothing is in)."""
     if points.shape[1] == 0:

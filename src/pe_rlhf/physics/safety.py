@@ -280,8 +280,9 @@ class _Forecast:
             state, failed = self.step(state, self.recovery_steering(state, mode), -config.recovery_braking, i)
             if failed:
                 return i * config.dt
-            if state[2] <= 0.0 and state[4] is None and not self.others.moving:
-                return config.horizon  # stopped on the road, clear of everything, nothing moving: nothing can happen
+            if state[2] <= 0.0 and state[4] is None and self.others.clear_of(
+                    state[0], (self.ego.LENGTH + self.ego.WIDTH) / 2, i * self.substeps, config.dt / self.substeps):
+                return config.horizon  # stopped on the road, clear of everything, nothing moving near: safe
         return config.horizon
 
 
@@ -337,21 +338,27 @@ class SafetyForecastValue(torch.nn.Module):
     def recovery_value(self, env=None) -> torch.Tensor:
         """``(1, 1)``: seconds until a failure when the recovery starts now (no hold; the action is not read):
         what any fallback that brakes at once can reach (``HybridActionSelector(reference=...)``)."""
-        config = dataclasses.replace(self.config, hold=0.0)
-        return self._forecast(torch.zeros(1, 2), env, config)
+        return self.recovery_value_and_action(env)[0]
 
     def recovery_action(self, env=None) -> torch.Tensor:
         """``(2,)`` float32: the first step of the best recovery from now (full braking, with the steering of
         ``config.recovery`` that fails latest, as :meth:`recovery_value` forecasts it): the action a fallback executes
         where physics' own is forecast worse."""
+        return self.recovery_value_and_action(env)[1]
+
+    def recovery_value_and_action(self, env=None) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(recovery_value (1, 1), recovery_action (2,))`` from one forecast (the selector needs both)."""
+        if env is None:
+            raise ValueError("SafetyForecastValue.recovery_value_and_action needs env= (the simulator to forecast "
+                             "from)")
         sim = getattr(env, "unwrapped", env)
         forecast = _Forecast(sim, self.config)
         state = (np.array(sim.vehicle.position, float), float(sim.vehicle.heading), float(sim.vehicle.speed),
                  sim.route.project(sim.vehicle.position, sim.route_segment)[0], forecast.behind0)
-        modes = forecast.recovery_modes(state)
-        mode = modes[0] if len(modes) == 1 else forecast.best_recovery(state, 0)[1]
+        value, mode = forecast.best_recovery(state, 0)
         steering = forecast.recovery_steering(state, mode)
-        return torch.as_tensor(controls_to_action(steering, -self.config.recovery_braking))
+        return (torch.tensor([[value]], dtype=torch.float32),
+                torch.as_tensor(controls_to_action(steering, -self.config.recovery_braking)))
 
     @property
     def horizon(self) -> float:
