@@ -10,11 +10,14 @@ gain ``KP_LATERAL``, heading gain ``KP_HEADING``), the next lane of its route at
 forecast along that lane, its heading lagging the lane's as in the simulator: on a hand-built bend, at its target
 speed, within 0.04 m and 0.01 rad of the simulator over the 3 s (``tests/physics/test_road_users.py``); a car
 circulating in a roundabout (train scene 8) was 0.5 m off after 0.6 s and 8.1 m after 3 s as a straight line at its
-velocity, 0.09 m and 1.3 m in this model (the rest its IDM acceleration). Its path is integrated once a forecast at
-the forecast's step (0.1 s) and interpolated linearly for the sub-steps between; the forecasts of one decision share
-it (:func:`cached_path`). Not forecast: a lane change the vehicle has not started yet (MOBIL), a change of speed
-(the IDM: braking behind a queue or at a stop line, accelerating out of a bend), a crashed vehicle's stop. Every
-other road user keeps its velocity: a static obstacle stays where it is.
+velocity, 0.09 m and 1.3 m in this model (the rest its IDM acceleration). Its path is integrated once a decision at
+the forecast's step (0.1 s) and interpolated linearly for the sub-steps between (:func:`cached_path`). Not
+forecast: a lane change the vehicle has not started yet (MOBIL), a change of speed (the IDM: braking behind a queue
+or at a stop line, slowing into a bend, accelerating out of one), a crashed vehicle's stop. The forecast's default
+(:class:`RoadUsers` ``model="lanes_or_velocity"``) therefore also moves each lane follower straight on at its
+velocity, the model before, and counts a contact with either path: on never-brake's train scene 7 a truck's lane
+change at a roundabout's entry was caught only by the straight path (docs/guide/shield.md). Every other road user
+keeps its velocity: a static obstacle stays where it is.
 """
 
 from __future__ import annotations

@@ -4,13 +4,15 @@ The value estimator of the hybrid selector must know that an action is *bad*, an
 crash-free driving (or an expert's critics, which assume the expert's own continuation) does not. This
 module predicts it from the vehicle model instead: the ego, a kinematic bicycle (the same equations as the
 simulator's ``highway_env`` vehicle), holds the candidate action for ``hold`` seconds, then recovers as well
-as a car can (full braking, steering back along the route; ``recovery="route_or_straight"``: or with the wheels
-straight, whichever fails later). Road users ahead drive on along their planned lanes at constant speed, steered by
-their own lane-keeping controller (:mod:`pe_rlhf.physics.road_users`: a car in a bend or turning at a junction is
-forecast in the bend), others keep their velocity and static obstacles stay; moving road users behind drive on
-under the IDM, braking for the ego only once it is in their lane and no harder than their car can
-(:mod:`pe_rlhf.physics.followers`; ``followers=False``: ignored). A standing ego is safe only while nothing moves
-towards it: the forecast runs on while any road user moves.
+as a car can: full braking, steering back along the route or with the wheels straight, whichever fails later
+(``recovery``, default ``"route_or_straight"``). A lane-following road user ahead drives on at constant speed both
+along its planned lanes, steered by its own lane-keeping controller, and straight on at its velocity, a contact
+with either path a contact (:mod:`pe_rlhf.physics.road_users`; ``road_users``, default ``"lanes_or_velocity"``:
+a car in a bend, or turning off at a junction or a roundabout, is forecast there, and the straight path stands in
+for a lane change no model here foresees); any other road user keeps its velocity and static obstacles stay;
+moving road users behind drive on under the IDM, braking for the ego only once it is in their lane and no harder
+than their car can (:mod:`pe_rlhf.physics.followers`; ``followers=False``: ignored). A standing ego is safe only
+while no moving road user can reach it: the forecast runs on until none can.
 The forecast moves in the simulator's sub-steps (``1 / simulation_frequency``), and the candidate *fails* at
 the first step where, after one of them, its body touches a road user by the simulator's own test (the polygon
 test with each body pushed on by its velocity over the sub-step, which the env counts as a crash), or where its
