@@ -36,6 +36,8 @@ from pe_rlhf.envs.torchrl_env import make_env, unwrap
 from pe_rlhf.evaluation.policies import PhysicsPolicyAdapter, make_policy, register_policy
 from pe_rlhf.mentors import make_mentor
 from pe_rlhf.physics import IDMMobilPolicy, PhysicsConfig, SafetyForecastConfig, SafetyForecastValue
+from pe_rlhf.physics.road_users import MODELS as ROAD_USER_MODELS
+from pe_rlhf.physics.safety import RECOVERIES
 from pe_rlhf.algorithms.proxy_q.value_expert import load_value_expert, parse_value_source
 from pe_rlhf.transforms import HybridActionSelector, InterventionTransform
 
@@ -127,18 +129,21 @@ def drive(mentor: str | None, scenes: list[int], split: str = "train", selector:
             "per_episode": rows}
 
 
-def forecast_value(hold: float = 1.0, recovery: str = "route", one_lane: bool = False) -> SafetyForecastValue:
-    """``selector.value=forecast`` with ``selector.forecast_hold=hold`` and ``selector.forecast_recovery=recovery``."""
-    return SafetyForecastValue(SafetyForecastConfig(hold=hold, recovery=recovery, hold_one_lane=one_lane))
+def forecast_value(hold: float = 1.0, recovery: str | None = None, one_lane: bool = False,
+                   road_users: str | None = None) -> SafetyForecastValue:
+    """The forecast value source held ``hold`` seconds, with ``recovery`` and ``road_users`` (None: the config's
+    defaults, as ``selector.value=forecast`` builds it)."""
+    options = {k: v for k, v in (("recovery", recovery), ("road_users", road_users)) if v is not None}
+    return SafetyForecastValue(SafetyForecastConfig(hold=hold, hold_one_lane=one_lane, **options))
 
 
 def measure(mentors: list[str], scenes: list[int], split: str, value: str, epsilons: list[float],
             switch_margins: list[float | None], variance_threshold: float | None = None,
-            forecast_hold: float = 1.0, forecast_recovery: str = "route", veto_patience: int = 1,
+            forecast_hold: float = 1.0, forecast_recovery: str | None = None, veto_patience: int = 1,
             imminent_failure: float | None = None, one_lane: bool = False,
             persistence: list[str] = ("off",), references: list[str] = ("physics",),
             strict: list[bool] = (False,), progress_margins: list[float | None] = (None,), save=None,
-            floor: bool = True) -> list[dict]:
+            floor: bool = True, road_users: str | None = None) -> list[dict]:
     """Every row (see the module docstring) for every mentor, IDM-MOBIL alone once (``floor=False``: not, it is
     measured apart). ``save(results)`` is called after each row (a long run keeps what it measured)."""
     world = DrivingConfig(split=split, lane_features=True)
@@ -146,7 +151,7 @@ def measure(mentors: list[str], scenes: list[int], split: str, value: str, epsil
     if kind == "warmup":
         raise SystemExit("--value: a warm-up ensemble exists only inside a run; use expert, expert:PATH or "
                          "forecast")
-    ensemble = forecast_value(forecast_hold, forecast_recovery, one_lane) if kind == "forecast" \
+    ensemble = forecast_value(forecast_hold, forecast_recovery, one_lane, road_users) if kind == "forecast" \
         else load_value_expert(path, world_obs_dim(world))
     results = _Rows(save)
     if floor:
@@ -285,8 +290,10 @@ def main(argv=None) -> list[dict]:
                         "action held 1 s must make physics' progress less this, where physics is safe")
     parser.add_argument("--hold-one-lane", action="store_true", help="selector.forecast_hold_one_lane: the hold "
                         "ends once the car has moved one lane width sideways")
-    parser.add_argument("--forecast-recovery", choices=["route", "lanes"], default="route",
-                        help="selector.forecast_recovery with --value forecast")
+    parser.add_argument("--forecast-recovery", choices=list(RECOVERIES), default=None,
+                        help="the forecast's recovery with --value forecast (default: SafetyForecastConfig's)")
+    parser.add_argument("--forecast-road-users", choices=list(ROAD_USER_MODELS), default=None,
+                        help="how the forecast moves road users ahead (default: SafetyForecastConfig's)")
     parser.add_argument("--takeover-rates", nargs="*", metavar="DRIVER", default=None,
                         help="instead: each mentor's takeover share watching these drivers (e.g. idm-mobil-oracle "
                              "idm-mobil idm-mobil-blind random)")
@@ -320,7 +327,7 @@ def main(argv=None) -> list[dict]:
                       args.variance_threshold, args.forecast_hold, args.forecast_recovery,
                           args.veto_patience, args.imminent_failure, args.hold_one_lane, args.persistence,
                           args.references, [s == "on" for s in args.strict], args.progress_margins, save,
-                          floor=not args.no_floor)
+                          floor=not args.no_floor, road_users=args.forecast_road_users)
     print(format_table(results))
     print(f"{len(scenes)} {args.split} scenes ({scenes[0]}-{scenes[-1]}), value {args.value}, "
           f"{time.time() - t:.0f} s", flush=True)

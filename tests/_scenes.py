@@ -22,6 +22,7 @@ EMPTY_STRAIGHT = dict(
     block_types=("straight",), min_blocks=2, max_blocks=2, split=None,
 )
 LONG_ROAD_SEED = 987_654_321  # cache key of the hand-built long road (never a generated seed)
+CURVE_SEED = 987_654_322  # cache key of the hand-built bend
 
 
 # --------------------------------------------------------------------------- scene helpers
@@ -55,6 +56,20 @@ def long_road_env(length: float = 900.0):
     env._scenes[LONG_ROAD_SEED] = long_road_scene(length)
     env.reset(options={"scene_seed": LONG_ROAD_SEED})
     assert env.route.length == pytest.approx(length + 80.0)
+    return env
+
+
+def curve_env(radius: float = 30.0, angle: float = math.pi / 2):
+    """An empty three-lane road: 40 m straight, then a bend of ``radius`` [m] (the road's centre line) turning by
+    ``angle`` [rad] (positive: towards lane slot 2, the inner lane), then 60 m straight; built here as
+    :func:`long_road_env` is (the generator draws bends, it does not take them as arguments)."""
+    b = RouteBuilder(lanes=3)
+    b.straight(40.0, tag="s", obstacles_ok=False)
+    b.arc(radius, angle, obstacles_ok=False)
+    b.straight(60.0, tag="d", obstacles_ok=False)
+    env = make_gym_env(DrivingConfig(**EMPTY_STRAIGHT))
+    env._scenes[CURVE_SEED] = Scene(CURVE_SEED, b.network, Route(b.network, b.segments, 3), ["curve"], [], [])
+    env.reset(options={"scene_seed": CURVE_SEED})
     return env
 
 

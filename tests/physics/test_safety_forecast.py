@@ -147,7 +147,7 @@ def test_a_hold_of_one_lane_lets_a_lane_change_through():
 def test_lane_recovery_is_never_worse_than_the_route_recovery_on_a_straight():
     env = at_speed(20.0, obstacle_ahead=35.0)
     for action in (THROTTLE, COAST, np.array([0.3, 0.5], np.float32), np.array([-0.3, 0.5], np.float32)):
-        route = time_to_failure(env, action, SafetyForecastConfig(hold=0.3))
+        route = time_to_failure(env, action, SafetyForecastConfig(hold=0.3, recovery="route"))
         lanes = time_to_failure(env, action, SafetyForecastConfig(hold=0.3, recovery="lanes"))
         assert lanes >= route  # the lanes' best includes the current lane's centre
 
@@ -300,3 +300,57 @@ def test_creeping_past_a_cone_the_forecast_fails_where_the_simulator_crashes():
             assert forecast == pytest.approx(3.0), action
         else:  # a contact the simulator finds in a sub-step's look-ahead counts at the next step
             assert crash_at - 0.1 - 1e-6 <= forecast <= crash_at + 1e-6, (action, forecast, crash_at)
+
+
+def test_a_standing_ego_is_still_hit_by_a_road_user_coming_at_it():
+    """A stopped car is not safe while something moves towards it: a vehicle coming head-on along the ego's lane
+    (a plain highway-env vehicle: it keeps its velocity) hits the standing ego after 1.5 s, in the forecast as in the
+    simulator. Before, the recovery ended the forecast as safe once the ego stood still."""
+    from highway_env.vehicle.kinematics import Vehicle
+
+    env = at_speed(0.0)
+    ego = env.vehicle
+    forward = np.array([np.cos(ego.heading), np.sin(ego.heading)])
+    oncoming = Vehicle(env.road, ego.position + 20.0 * forward, heading=ego.heading + np.pi, speed=10.0)
+    env.road.vehicles.append(oncoming)
+    forecast = time_to_failure(env, BRAKE)
+    assert 1.0 < forecast < 3.0  # after the hold: the recovery sees it
+    steps = 0
+    while True:
+        _, _, terminated, truncated, info = env.step(BRAKE)
+        steps += 1
+        if terminated or truncated:
+            break
+    assert info["crash_vehicle"]
+    assert forecast == pytest.approx(steps * 0.1, abs=0.15)
+
+
+def test_the_recovery_keeps_the_wheels_straight_where_steering_back_runs_into_a_car():
+    """At 12 m/s, 0.25 rad off the route's heading, a broken-down car 12 m ahead in its lane: braking while steering
+    back along the route stays in the lane and hits it (0.8 s, in the forecast as in the simulator), braking with
+    the wheels straight carries the car past it. ``recovery="route_or_straight"`` forecasts the better of the two
+    and the fallback's action is that one's: executed step after step in the simulator, it does not crash."""
+    import pickle
+
+    def rollout(env, value) -> bool:  # the fallback executed at every step for 4 s: crashed?
+        env = pickle.loads(pickle.dumps(env))
+        for _ in range(40):
+            _, _, terminated, truncated, info = env.step(value.recovery_action(env=env).numpy())
+            if info["crash_vehicle"] or info["crash_object"] or info["out_of_road"]:
+                return True
+            if terminated or truncated:
+                return False
+        return False
+
+    env = straight_env(scene_seed=0)
+    place_ego(env, 60.0, lane=1, speed=12.0, dheading=0.25)
+    add_obstacle(env, 72.0, lane=1)
+    route = SafetyForecastValue(SafetyForecastConfig(recovery="route"))
+    best = SafetyForecastValue()  # recovery="route_or_straight"
+    assert route.recovery_value(env=env).item() == pytest.approx(0.8)
+    assert rollout(env, route)
+    assert best.recovery_value(env=env).item() == pytest.approx(3.0)
+    assert best.recovery_action(env=env).numpy() == pytest.approx([0.0, -1.0])
+    assert not rollout(env, best)
+    for action in (BRAKE, COAST):  # the candidates' forecasts: never worse than with the route recovery alone
+        assert time_to_failure(env, action, best.config) >= time_to_failure(env, action, route.config)

@@ -4,9 +4,15 @@ The value estimator of the hybrid selector must know that an action is *bad*, an
 crash-free driving (or an expert's critics, which assume the expert's own continuation) does not. This
 module predicts it from the vehicle model instead: the ego, a kinematic bicycle (the same equations as the
 simulator's ``highway_env`` vehicle), holds the candidate action for ``hold`` seconds, then recovers as well
-as a car can (full braking, steering back along the route); road users ahead keep their velocity, static
-obstacles stay, and moving road users behind drive on under the IDM, braking for the ego only once it is in
-their lane and no harder than their car can (:mod:`pe_rlhf.physics.followers`; ``followers=False``: ignored).
+as a car can: full braking, steering back along the route or with the wheels straight, whichever fails later
+(``recovery``, default ``"route_or_straight"``). A lane-following road user ahead drives on at constant speed both
+along its planned lanes, steered by its own lane-keeping controller, and straight on at its velocity, a contact
+with either path a contact (:mod:`pe_rlhf.physics.road_users`; ``road_users``, default ``"lanes_or_velocity"``:
+a car in a bend, or turning off at a junction or a roundabout, is forecast there, and the straight path stands in
+for a lane change no model here foresees); any other road user keeps its velocity and static obstacles stay;
+moving road users behind drive on under the IDM, braking for the ego only once it is in their lane and no harder
+than their car can (:mod:`pe_rlhf.physics.followers`; ``followers=False``: ignored). A standing ego is safe only
+while no moving road user can reach it: the forecast runs on until none can.
 The forecast moves in the simulator's sub-steps (``1 / simulation_frequency``), and the candidate *fails* at
 the first step where, after one of them, its body touches a road user by the simulator's own test (the polygon
 test with each body pushed on by its velocity over the sub-step, which the env counts as a crash), or where its
@@ -25,7 +31,9 @@ ignoring it (as before ``followers``) judged hard braking in front of a fast fol
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
+import weakref
 from dataclasses import dataclass
 
 import numpy as np
@@ -36,13 +44,16 @@ from pe_rlhf.envs.action import MAX_BRAKING, MAX_STEERING, action_to_controls, c
 from pe_rlhf.envs.driving_env import ROAD_EDGE_MARGIN  # the env's own off-road test, not a copy of it
 from pe_rlhf.envs.geometry import LANE_WIDTH
 from pe_rlhf.physics.followers import Followers
+from pe_rlhf.physics.road_users import MODELS as ROAD_USER_MODELS
+from pe_rlhf.physics.road_users import RoadUsers
 
 NEAR = 60.0  # [m] road users farther than this cannot be reached within a forecast
 RECOVERY_STEERING_GAIN = 1.5  # [rad of wheel angle per rad of heading error] while recovering
-# The recoveries after the hold: "route" steers back along the route's heading (one recovery); "lanes" tracks
-# the centre of the lane the car is nearest to, or of either neighbour, and keeps the best (a lane change in
-# progress is finished or undone, whichever is safer).
-RECOVERIES = ("route", "lanes")
+# The recoveries after the hold, all full braking: "route" steers back along the route's heading (one recovery);
+# "route_or_straight" also tries the wheels straight and keeps the better (steering back towards the route can
+# steer into a road user beside the car); "lanes" tracks the centre of the lane the car is nearest to, or of either
+# neighbour, and keeps the best (a lane change in progress is finished or undone, whichever is safer).
+RECOVERIES = ("route", "route_or_straight", "lanes")
 LANE_TAU_LATERAL = 0.6  # [s] lateral-offset loop of the lane recovery (the privileged driver's)
 LANE_TAU_HEADING = 0.2  # [s] heading loop of the lane recovery
 LANE_MAX_HEADING_OFFSET = math.pi / 8  # [rad] largest angle to the lane taken to reach its centre
@@ -51,18 +62,24 @@ LANE_MAX_HEADING_OFFSET = math.pi / 8  # [rad] largest angle to the lane taken t
 @dataclass(frozen=True)
 class SafetyForecastConfig:
     """``hold`` [s]: the candidate action is held this long; ``horizon`` [s]: the forecast's length;
-    ``dt`` [s]: its integration step; ``recovery_braking`` [m/s^2]: deceleration after ``hold``;
-    ``followers``: moving road users behind the ego drive on under the IDM (False: they are ignored)."""
+    ``dt`` [s]: its integration step; ``recovery_braking`` [m/s^2]: deceleration after ``hold``; ``recovery``: the
+    recovery's steering (``RECOVERIES``); ``hold_one_lane``: the hold ends once the car has moved one lane sideways;
+    ``followers``: moving road users behind the ego drive on under the IDM (False: they are ignored);
+    ``road_users``: how a lane-following road user ahead moves (:data:`pe_rlhf.physics.road_users.MODELS`)."""
 
     hold: float = 1.0
     horizon: float = 3.0
     dt: float = 0.1
     recovery_braking: float = MAX_BRAKING
-    recovery: str = "route"
+    recovery: str = "route_or_straight"
     hold_one_lane: bool = False
     followers: bool = True
+    road_users: str = "lanes_or_velocity"
 
     def __post_init__(self) -> None:
+        if self.road_users not in ROAD_USER_MODELS:
+            raise ValueError(f"SafetyForecastConfig.road_users={self.road_users!r} is invalid: allowed "
+                             f"{list(ROAD_USER_MODELS)}")
         if self.recovery not in RECOVERIES:
             raise ValueError(f"SafetyForecastConfig.recovery={self.recovery!r} is invalid: allowed {list(RECOVERIES)}")
         for name in ("hold", "horizon", "dt", "recovery_braking"):
@@ -74,25 +91,37 @@ class SafetyForecastConfig:
             raise ValueError(f"SafetyForecastConfig dt={self.dt!r} and horizon={self.horizon!r} must be > 0")
 
 
-def _others(env) -> list[tuple[np.ndarray, np.ndarray, float, float, float]]:
-    """``(position, velocity, heading, length, width)`` of the road users that keep their velocity: static
-    objects near the ego, and vehicles near it and ahead of it (those behind: :class:`Followers`)."""
+def _others(env) -> list:
+    """The road users whose motion does not depend on the ego (:class:`RoadUsers`): static objects near the ego, and
+    vehicles near it and ahead of it (those behind: :class:`Followers`)."""
     ego = env.vehicle
-    forward = np.array([math.cos(ego.heading), math.sin(ego.heading)])
-    out = []
-    for obj in list(env.road.vehicles) + list(env.road.objects):
-        if obj is ego:
-            continue
-        rel = np.asarray(obj.position, float) - ego.position
-        if np.linalg.norm(rel) > NEAR:
-            continue
-        speed = float(getattr(obj, "speed", 0.0))
-        if speed > 0.1 and rel @ forward < 0:  # a driver behind: it brakes for us (Followers forecasts it)
-            continue
-        velocity = speed * np.array([math.cos(obj.heading), math.sin(obj.heading)])
-        out.append((np.asarray(obj.position, float), velocity, float(obj.heading), float(obj.LENGTH),
-                    float(obj.WIDTH)))
-    return out
+    candidates = [obj for obj in list(env.road.vehicles) + list(env.road.objects) if obj is not ego]
+    if not candidates:
+        return []
+    rel = np.array([obj.position for obj in candidates], float) - np.asarray(ego.position, float)
+    near = np.hypot(rel[:, 0], rel[:, 1]) <= NEAR
+    behind = rel @ np.array([math.cos(ego.heading), math.sin(ego.heading)]) < 0
+    # a driver behind brakes for us: Followers forecasts it
+    return [obj for obj, n, b in zip(candidates, near, behind)
+            if n and not (b and float(getattr(obj, "speed", 0.0)) > 0.1)]
+
+
+_ROAD_USERS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # env -> (its road users' state, RoadUsers)
+
+
+def _road_users(env, config: SafetyForecastConfig, steps: int, substeps: int) -> RoadUsers:
+    """:class:`RoadUsers` of :func:`_others`, built once while their state (and the ego's, which selects them) is
+    unchanged: the forecasts of one decision (each candidate, the recovery, the repeated action) share it."""
+    objects = _others(env)
+    key = (config.dt, steps, substeps, config.road_users, tuple(
+        (id(o), float(o.position[0]), float(o.position[1]), float(o.heading), float(getattr(o, "speed", 0.0)),
+         getattr(o, "target_lane_index", None), tuple(getattr(o, "route", None) or ())) for o in objects))
+    hit = _ROAD_USERS.get(env)
+    if hit is not None and hit[0] == key:
+        return hit[1]
+    users = RoadUsers(objects, config.dt, steps, substeps, config.road_users)
+    _ROAD_USERS[env] = (key, users)
+    return users
 
 
 def time_to_failure(env, action, config: SafetyForecastConfig | None = None) -> float:
@@ -118,18 +147,11 @@ def time_to_failure(env, action, config: SafetyForecastConfig | None = None) -> 
             if abs(env.route.lateral_offset(state[0], segment) - lateral0) >= LANE_WIDTH:
                 hold_steps = i  # one lane change done: a driver steers no further
                 break
-    if config.recovery == "route":
-        return forecast.recover(state, hold_steps, None)
-    k = state[3]
-    lat = env.route.lateral_offset(state[0], k)
-    nearest = int(np.clip(np.round(lat / LANE_WIDTH + env.route.lanes // 2), 0, env.route.lanes - 1))
-    slots = [s for s in (nearest, nearest - 1, nearest + 1) if 0 <= s < env.route.lanes]
-    best = 0.0
-    for slot in slots:
-        best = max(best, forecast.recover(state, hold_steps, slot))
-        if best >= config.horizon:
-            break
-    return best
+    return forecast.best_recovery(state, hold_steps)[0]
+
+
+def _clip(value: float, limit: float) -> float:
+    return min(max(float(value), -limit), limit)
 
 
 def _on_segment(state, segment):
@@ -145,15 +167,20 @@ class _Forecast:
 
     def __init__(self, env, config: SafetyForecastConfig):
         self.env, self.config, self.ego = env, config, env.vehicle
-        self.others = _others(env)
+        self.steps = int(round(config.horizon / config.dt))
         self.followers = Followers(env, NEAR) if config.followers else None
         self.behind0 = self.followers.initial() if self.followers else None
-        self.steps = int(round(config.horizon / config.dt))
         self.max_speed = float(getattr(self.ego, "MAX_SPEED", 40.0))
         # The simulator moves in sub-steps of 1 / simulation_frequency and tests contact after each one; the
         # forecast does the same, so a contact is found where the simulator finds it (and only there).
         frequency = (getattr(env, "config", None) or {}).get("simulation_frequency")
         self.substeps = max(1, int(round(config.dt * frequency))) if frequency else 1
+
+    @functools.cached_property
+    def others(self) -> RoadUsers:
+        """The road users ahead and the static objects, their poses at every sub-step (built on first use: the
+        progress forecast never needs them; the forecasts of one decision share them: :func:`_road_users`)."""
+        return _road_users(self.env, self.config, self.steps, self.substeps)
 
     def step(self, state, steering: float, accel: float, i: int):
         """``(state, failed)`` after forecast step ``i`` (one ``dt``): :meth:`advance` in the simulator's
@@ -163,7 +190,7 @@ class _Forecast:
         touched = False
         for j in range(1, self.substeps + 1):
             state = self.advance(state, steering, accel, dt)
-            touched = touched or self.touching(state, (i - 1) * self.config.dt + j * dt, dt)
+            touched = touched or self.touching(state, (i - 1) * self.substeps + j, dt)
         return state, touched or not self.env.road.network.is_on_road(state[0], ROAD_EDGE_MARGIN)
 
     def advance(self, state, steering: float, accel: float, dt: float | None = None):
@@ -179,54 +206,85 @@ class _Forecast:
         speed = min(max(speed + accel * dt, 0.0), self.max_speed)
         return position, heading, speed, segment, behind
 
-    def touching(self, state, t: float, dt: float) -> bool:
-        """Whether the ego at ``state``, ``t`` seconds ahead, touches a road user: the simulator's own test after
-        each of its sub-steps of ``dt`` (highway-env's ``are_polygons_intersecting``, each body pushed on by its
-        velocity over ``dt``; a contact in that look-ahead is an ``impact``, which the env counts as a crash)."""
+    def touching(self, state, k: int, dt: float) -> bool:
+        """Whether the ego at ``state``, after the forecast's sub-step ``k`` (of ``dt`` seconds), touches a road user:
+        the simulator's own test after each of its sub-steps (highway-env's ``are_polygons_intersecting``, each body
+        pushed on by its velocity over ``dt``; a contact in that look-ahead is an ``impact``, which the env counts as
+        a crash)."""
         position, heading, speed = state[0], state[1], state[2]
         ego = self.ego
-        ego_corners = None  # built only when a road user is near enough to touch (most steps: none)
-        ego_on = speed * dt * np.array([math.cos(heading), math.sin(heading)])
-        behind = [] if state[4] is None else self.followers.poses(state[4])
-        for other, head, length, width, vel in [(pos + vel * t, head, length, width, vel)
-                                                for pos, vel, head, length, width in self.others] + behind:
-            if math.hypot(other[0] - position[0], other[1] - position[1]) > \
-                    (length + ego.LENGTH) / 2 + (width + ego.WIDTH) / 2 + (speed + math.hypot(*vel)) * dt:
-                continue
+        ego_corners = ego_on = None  # built only when a road user is near enough to touch (most steps: none)
+        reach = (ego.LENGTH + ego.WIDTH) / 2
+        candidates = self.others.near(k, position, reach, speed * dt, dt) if self.others.count else []
+        if state[4] is not None:
+            candidates += [pose for pose in self.followers.poses(state[4])
+                           if math.hypot(pose[0][0] - position[0], pose[0][1] - position[1])
+                           <= reach + (pose[2] + pose[3]) / 2 + (speed + math.hypot(*pose[4])) * dt]
+        for other, head, length, width, vel in candidates:
             if ego_corners is None:
                 ego_corners = utils.rect_corners(position, ego.LENGTH, ego.WIDTH, heading)
+                ego_on = speed * dt * np.array([math.cos(heading), math.sin(heading)])
             touching, will_touch, _ = utils.are_polygons_intersecting(
                 ego_corners, utils.rect_corners(other, length, width, head), ego_on, vel * dt)
             if touching or will_touch:
                 return True
         return False
 
-    def recovery_steering(self, state, slot: int | None) -> float:
-        """Full braking's steering: back along the route (``slot`` None), or towards lane ``slot``'s centre."""
+    def recovery_modes(self, state) -> list:
+        """The steerings the recovery tries from ``state`` (``config.recovery``), in order of preference: "route"
+        (back along the route), "straight" (the wheels straight), or lane slots (towards a lane's centre)."""
+        if self.config.recovery == "route":
+            return ["route"]
+        if self.config.recovery == "route_or_straight":
+            return ["route", "straight"]
+        route = self.env.route
+        lateral = route.lateral_offset(state[0], state[3])
+        nearest = min(max(int(round(lateral / LANE_WIDTH + route.lanes // 2)), 0), route.lanes - 1)
+        return [s for s in (nearest, nearest - 1, nearest + 1) if 0 <= s < route.lanes]
+
+    def best_recovery(self, state, start: int) -> tuple[float, object]:
+        """``(seconds to a failure, mode)`` of the recovery mode (:meth:`recovery_modes`) from ``state`` (forecast
+        step ``start``) that fails latest; the first such on a tie (the full horizon ends the search)."""
+        best, best_mode = -1.0, None
+        for mode in self.recovery_modes(state):
+            value = self.recover(state, start, mode)
+            if value > best:
+                best, best_mode = value, mode
+            if best >= self.config.horizon:
+                break
+        return best, best_mode
+
+    def recovery_steering(self, state, mode) -> float:
+        """Full braking's steering: back along the route (``mode`` "route"), the wheels straight ("straight"), or
+        towards lane slot ``mode``'s centre (an int)."""
+        if mode == "straight":
+            return 0.0
         position, heading, speed, segment = state[:4]
         route = self.env.route
         ref = route.heading_at(position, segment)
-        if slot is not None:
-            target = (slot - route.lanes // 2) * LANE_WIDTH
+        if mode != "route":
+            target = (mode - route.lanes // 2) * LANE_WIDTH
             error = route.lateral_offset(position, segment) - target
             speed_c = max(speed, 2.0)
-            offset = math.asin(float(np.clip(-error / LANE_TAU_LATERAL / speed_c, -1, 1)))
-            ref += float(np.clip(offset, -LANE_MAX_HEADING_OFFSET, LANE_MAX_HEADING_OFFSET))
+            offset = math.asin(_clip(-error / LANE_TAU_LATERAL / speed_c, 1.0))
+            ref += _clip(offset, LANE_MAX_HEADING_OFFSET)
             rate = utils.wrap_to_pi(ref - heading) / LANE_TAU_HEADING
-            slip = math.asin(float(np.clip(self.ego.LENGTH / 2 / speed_c * rate, -1, 1)))
-            return float(np.clip(math.atan(2 * math.tan(slip)), -MAX_STEERING, MAX_STEERING))
-        return float(np.clip(RECOVERY_STEERING_GAIN * utils.wrap_to_pi(ref - heading), -MAX_STEERING, MAX_STEERING))
+            slip = math.asin(_clip(self.ego.LENGTH / 2 / speed_c * rate, 1.0))
+            return _clip(math.atan(2 * math.tan(slip)), MAX_STEERING)
+        return _clip(RECOVERY_STEERING_GAIN * utils.wrap_to_pi(ref - heading), MAX_STEERING)
 
-    def recover(self, state, start: int, slot: int | None) -> float:
-        """Seconds to a failure while recovering from ``state`` (step ``start`` of the forecast)."""
+    def recover(self, state, start: int, mode) -> float:
+        """Seconds to a failure while recovering with steering ``mode`` (:meth:`recovery_steering`) from ``state``
+        (step ``start`` of the forecast)."""
         config = self.config
         for i in range(start + 1, self.steps + 1):
             state = _on_segment(state, self.env.route.project(state[0], state[3])[0])
-            state, failed = self.step(state, self.recovery_steering(state, slot), -config.recovery_braking, i)
+            state, failed = self.step(state, self.recovery_steering(state, mode), -config.recovery_braking, i)
             if failed:
                 return i * config.dt
-            if state[2] <= 0.0 and state[4] is None:
-                return config.horizon  # stopped on the road, clear of everything: nothing more can happen
+            if state[2] <= 0.0 and state[4] is None and self.others.clear_of(
+                    state[0], (self.ego.LENGTH + self.ego.WIDTH) / 2, i * self.substeps, config.dt / self.substeps):
+                return config.horizon  # stopped on the road, clear of everything, nothing moving near: safe
         return config.horizon
 
 
@@ -282,18 +340,27 @@ class SafetyForecastValue(torch.nn.Module):
     def recovery_value(self, env=None) -> torch.Tensor:
         """``(1, 1)``: seconds until a failure when the recovery starts now (no hold; the action is not read):
         what any fallback that brakes at once can reach (``HybridActionSelector(reference=...)``)."""
-        config = dataclasses.replace(self.config, hold=0.0)
-        return self._forecast(torch.zeros(1, 2), env, config)
+        return self.recovery_value_and_action(env)[0]
 
     def recovery_action(self, env=None) -> torch.Tensor:
-        """``(2,)`` float32: the first step of the recovery from now (full braking, steering back along the
-        route): the action a fallback executes where physics' own is forecast worse."""
+        """``(2,)`` float32: the first step of the best recovery from now (full braking, with the steering of
+        ``config.recovery`` that fails latest, as :meth:`recovery_value` forecasts it): the action a fallback executes
+        where physics' own is forecast worse."""
+        return self.recovery_value_and_action(env)[1]
+
+    def recovery_value_and_action(self, env=None) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(recovery_value (1, 1), recovery_action (2,))`` from one forecast (the selector needs both)."""
+        if env is None:
+            raise ValueError("SafetyForecastValue.recovery_value_and_action needs env= (the simulator to forecast "
+                             "from)")
         sim = getattr(env, "unwrapped", env)
         forecast = _Forecast(sim, self.config)
         state = (np.array(sim.vehicle.position, float), float(sim.vehicle.heading), float(sim.vehicle.speed),
-                 sim.route.project(sim.vehicle.position, sim.route_segment)[0])
-        steering = forecast.recovery_steering(state, None)
-        return torch.as_tensor(controls_to_action(steering, -self.config.recovery_braking))
+                 sim.route.project(sim.vehicle.position, sim.route_segment)[0], forecast.behind0)
+        value, mode = forecast.best_recovery(state, 0)
+        steering = forecast.recovery_steering(state, mode)
+        return (torch.tensor([[value]], dtype=torch.float32),
+                torch.as_tensor(controls_to_action(steering, -self.config.recovery_braking)))
 
     @property
     def horizon(self) -> float:

@@ -70,7 +70,9 @@ class HybridActionSelector(TensorDictModuleBase):
     of recovering at once. The forecast holds physics' action 1 s as any other, and the sharpest steps of
     physics' own lane change held 1 s leave the road although physics, a closed loop, never holds them: the
     mentor's danger then hides below physics'. Where braking at once is the better of the two, it is also
-    what the hybrid executes in physics' place (unbatched: the forecast reads one simulator).
+    what the hybrid executes in physics' place (the value source's ``recovery_action(env=)``;
+    ``recovery_value_and_action(env=)``, where it has one, gives both from one forecast; unbatched: the forecast
+    reads one simulator).
 
     ``strict_in_danger`` (off by default): where physics' (the reference's) own value is below the forecast's
     horizon, the mentor needs an advantage of at least 0 whatever ``epsilon_select`` says: a negative epsilon's
@@ -249,9 +251,11 @@ class HybridActionSelector(TensorDictModuleBase):
         The value is the better of the two either way."""
         if bool((q_phy >= self.q_ensemble.horizon).all()):
             return physics_action, q_phy  # physics' action is safe over the whole forecast: nothing is better
-        recovery = self.q_ensemble.recovery_value(env=env).to(q_phy)
+        both = getattr(self.q_ensemble, "recovery_value_and_action", None)  # both from one forecast
+        recovery, action = both(env=env) if both is not None else (self.q_ensemble.recovery_value(env=env), None)
+        recovery = recovery.to(q_phy)
         if bool((recovery > q_phy + max(-self.epsilon_select, 0.0)).all()):  # within the slack physics drives on
-            action = self.q_ensemble.recovery_action(env=env).to(physics_action)
+            action = (self.q_ensemble.recovery_action(env=env) if action is None else action).to(physics_action)
             return action.reshape(physics_action.shape), recovery.expand_as(q_phy)
         return physics_action, torch.maximum(q_phy, recovery)
 
