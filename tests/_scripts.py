@@ -55,3 +55,14 @@ def run_recipe_here(recipe: str, *argv: str, monkeypatch, capsys) -> tuple[int, 
         code = exit_.code if isinstance(exit_.code, int) else (0 if exit_.code is None else 1)
     out, err = capsys.readouterr()
     return code, out, err
+
+
+def assert_bad_lr_is_one_line(recipe: str, folder: Path, monkeypatch, capsys) -> None:
+    """``recipes/<recipe>/train.py optim.lr=-1`` from ``folder``: exit 2, one ``error:`` line naming the field, the
+    value and what is allowed, and nothing written."""
+    monkeypatch.chdir(folder)
+    code, _, err = run_recipe_here(recipe, "optim.lr=-1", "--out", str(folder / "run"), monkeypatch=monkeypatch,
+                                   capsys=capsys)
+    assert code == 2
+    assert err == "error: optim.lr=-1 is invalid: must be a finite number > 0\n"
+    assert list(folder.iterdir()) == []

@@ -31,6 +31,16 @@ def at_speed(speed: float, obstacle_ahead: float | None = None):
     return env
 
 
+def hold_to_the_end(env, action, max_steps: int | None = None) -> tuple[int, dict]:
+    """Step ``env`` with ``action`` until the episode ends (or ``max_steps``): ``(steps, last info)``."""
+    steps = 0
+    while True:
+        _, _, terminated, truncated, info = env.step(action)
+        steps += 1
+        if terminated or truncated or (max_steps is not None and steps >= max_steps):
+            return steps, info
+
+
 def test_nothing_in_the_way_is_worth_the_whole_horizon():
     env = at_speed(15.0)
     for action in (COAST, THROTTLE, BRAKE):
@@ -60,12 +70,7 @@ def test_the_forecast_crash_time_matches_the_simulator():
     config = SafetyForecastConfig(hold=3.0, horizon=3.0)
     forecast = time_to_failure(env, THROTTLE, config)
     assert forecast < 3.0
-    steps = 0
-    while True:
-        _, _, terminated, truncated, info = env.step(THROTTLE)
-        steps += 1
-        if terminated or truncated:
-            break
+    steps, info = hold_to_the_end(env, THROTTLE)
     assert info["crash_object"]
     assert forecast == pytest.approx(steps * 0.1, abs=0.15)
 
@@ -176,12 +181,7 @@ def test_braking_hard_in_front_of_a_fast_follower_fails_sooner_than_keeping_spee
     assert brake < keep - 1.0
     ignored = SafetyForecastConfig(followers=False)
     assert time_to_failure(env, BRAKE, ignored) == pytest.approx(3.0)  # the old forecast: braking looked safe
-    steps = 0
-    while True:
-        _, _, terminated, truncated, info = env.step(BRAKE)
-        steps += 1
-        if terminated or truncated or steps > 40:
-            break
+    steps, info = hold_to_the_end(env, BRAKE, max_steps=41)
     assert info["crash_vehicle"]
     assert brake == pytest.approx(steps * 0.1, abs=0.15)
 
@@ -315,12 +315,7 @@ def test_a_standing_ego_is_still_hit_by_a_road_user_coming_at_it():
     env.road.vehicles.append(oncoming)
     forecast = time_to_failure(env, BRAKE)
     assert 1.0 < forecast < 3.0  # after the hold: the recovery sees it
-    steps = 0
-    while True:
-        _, _, terminated, truncated, info = env.step(BRAKE)
-        steps += 1
-        if terminated or truncated:
-            break
+    steps, info = hold_to_the_end(env, BRAKE)
     assert info["crash_vehicle"]
     assert forecast == pytest.approx(steps * 0.1, abs=0.15)
 

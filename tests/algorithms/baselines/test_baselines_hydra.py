@@ -10,7 +10,7 @@ import pytest
 import yaml
 from omegaconf import OmegaConf
 
-from _scripts import run_recipe, run_recipe_here
+from _scripts import assert_bad_lr_is_one_line, run_recipe, run_recipe_here
 from pe_rlhf.algorithms.baselines import METHODS, default_config, load_baseline_config
 from pe_rlhf.algorithms.baselines.config import rules
 from pe_rlhf.runtime.config import save_config, to_container
@@ -41,12 +41,7 @@ def test_another_family_prints_its_own_composed_config(tmp_path, monkeypatch, ca
 
 def test_a_bad_value_from_the_script_is_one_line_naming_field_value_and_what_is_allowed(tmp_path, monkeypatch,
                                                                                        capsys):
-    monkeypatch.chdir(tmp_path)
-    code, _, err = run_recipe_here("bc", "optim.lr=-1", "--out", str(tmp_path / "run"), monkeypatch=monkeypatch,
-                                   capsys=capsys)
-    assert code == 2
-    assert err == "error: optim.lr=-1 is invalid: must be a finite number > 0\n"
-    assert list(tmp_path.iterdir()) == []
+    assert_bad_lr_is_one_line("bc", tmp_path, monkeypatch, capsys)
 
 
 @pytest.mark.parametrize("method", list(METHODS))

@@ -9,7 +9,7 @@ import pytest
 import yaml
 from omegaconf import OmegaConf
 
-from _scripts import run_recipe, run_recipe_here
+from _scripts import assert_bad_lr_is_one_line, run_recipe, run_recipe_here
 from pe_rlhf.runtime.config import to_container
 from pe_rlhf.runtime.config_compose import compose_file
 from pe_rlhf.runtime.config_rules import ConfigError
@@ -49,12 +49,7 @@ def test_every_recipe_script_prints_its_own_composed_config(recipe, tmp_path, mo
 
 def test_a_bad_value_from_the_script_is_one_line_naming_field_value_and_what_is_allowed(tmp_path, monkeypatch,
                                                                                        capsys):
-    monkeypatch.chdir(tmp_path)
-    code, _, err = run_recipe_here("pe_rlhf", "optim.lr=-1", "--out", str(tmp_path / "run"), monkeypatch=monkeypatch,
-                                   capsys=capsys)
-    assert code == 2
-    assert err == "error: optim.lr=-1 is invalid: must be a finite number > 0\n"
-    assert list(tmp_path.iterdir()) == []
+    assert_bad_lr_is_one_line("pe_rlhf", tmp_path, monkeypatch, capsys)
 
 
 def test_the_profile_is_a_config_group_and_overrides_apply_on_top():
