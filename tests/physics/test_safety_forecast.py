@@ -174,12 +174,15 @@ def behind_a_follower(gap: float, follower_speed: float, ego_speed: float = 15.0
 def test_braking_hard_in_front_of_a_fast_follower_fails_sooner_than_keeping_speed():
     """A car 12 m behind at 20 m/s brakes (its IDM, at most 6 m/s^2) once the ego is its leader: while the ego
     holds 15 m/s it stops closing in time; full braking lets it close the gap to a rear-end within the horizon,
-    at the instant the simulator's follower hits the ego."""
+    at the instant the simulator's follower hits the ego. (The recoveries here all brake: with the one that drives
+    on, braking for 1 s and then getting away from the follower is safe.)"""
     env = behind_a_follower(gap=12.0, follower_speed=20.0)
-    keep, brake = time_to_failure(env, COAST), time_to_failure(env, BRAKE)
+    braking = SafetyForecastConfig(recovery="route_or_straight")
+    keep, brake = time_to_failure(env, COAST, braking), time_to_failure(env, BRAKE, braking)
     assert keep == pytest.approx(3.0)
     assert brake < keep - 1.0
-    ignored = SafetyForecastConfig(followers=False)
+    assert time_to_failure(env, BRAKE) == pytest.approx(3.0)
+    ignored = SafetyForecastConfig(followers=False, recovery="route_or_straight")
     assert time_to_failure(env, BRAKE, ignored) == pytest.approx(3.0)  # the old forecast: braking looked safe
     steps, info = hold_to_the_end(env, BRAKE, max_steps=41)
     assert info["crash_vehicle"]
@@ -349,3 +352,45 @@ def test_the_recovery_keeps_the_wheels_straight_where_steering_back_runs_into_a_
     assert not rollout(env, best)
     for action in (BRAKE, COAST):  # the candidates' forecasts: never worse than with the route recovery alone
         assert time_to_failure(env, action, best.config) >= time_to_failure(env, action, route.config)
+
+
+def crossing_at_a_standing_ego(lateral: float = 15.0, speed: float = 6.0):
+    """The ego standing in the middle lane; a plain highway-env vehicle (it keeps its velocity: a car on a
+    roundabout's ring does not brake for a car standing across it) ``lateral`` metres to its left, 0.5 m ahead of
+    its centre, driving across the ego's lane at ``speed``: it reaches the ego's side in about 2 s."""
+    from highway_env.vehicle.kinematics import Vehicle
+
+    env = at_speed(0.0)
+    ego = env.vehicle
+    forward = np.array([np.cos(ego.heading), np.sin(ego.heading)])
+    left = np.array([np.sin(ego.heading), -np.cos(ego.heading)])  # towards lane slot 0
+    env.road.vehicles.append(Vehicle(env.road, ego.position + 0.5 * forward + lateral * left,
+                                     heading=ego.heading + np.pi / 2, speed=speed))
+    return env
+
+
+def test_a_car_standing_in_a_crossing_cars_path_recovers_by_driving_on():
+    """A road user that does not brake comes at the standing ego from the side: every braking recovery is hit
+    (about 2 s), in the forecast as in the simulator; driving on ahead at full throttle gets the car out of its
+    path. ``recovery="route_or_straight_or_ahead"`` (the default) forecasts that escape, and the fallback's action,
+    executed step after step in the simulator, does not crash. Traced on train scene 2: a car stood across a
+    roundabout's ring under the shielded uniform-random driver, every fallback forecast to be hit, and a car on the
+    ring drove into it."""
+    import pickle
+
+    env = crossing_at_a_standing_ego()
+    braking = SafetyForecastValue(SafetyForecastConfig(recovery="route_or_straight"))
+    best = SafetyForecastValue()
+    assert best.config.recovery == "route_or_straight_or_ahead"
+    assert 1.5 < braking.recovery_value(env=env).item() < 2.5
+    steps, info = hold_to_the_end(pickle.loads(pickle.dumps(env)), BRAKE, max_steps=40)
+    assert info["crash_vehicle"] and steps * 0.1 == pytest.approx(braking.recovery_value(env=env).item(), abs=0.15)
+    assert best.recovery_value(env=env).item() == pytest.approx(3.0)
+    assert best.recovery_action(env=env).numpy() == pytest.approx([0.0, 1.0], abs=0.05)
+    start = env.vehicle.position.copy()
+    for _ in range(40):  # the fallback executed at every step for 4 s: it drives on, then brakes once clear
+        _, _, terminated, truncated, info = env.step(best.recovery_action(env=env).numpy())
+        assert not (info["crash_vehicle"] or info["crash_object"] or info["out_of_road"])
+        if terminated or truncated:
+            break
+    assert np.linalg.norm(env.vehicle.position - start) > 3.0 and env.road.vehicles[-1].position[1] > start[1]

@@ -143,3 +143,26 @@ def test_no_persistent_adversary_gets_a_crash_through(name):
             if terminated or truncated:
                 break
         assert not (info["crash_vehicle"] or info["crash_object"] or info["out_of_road"]), (name, scene)
+
+
+def test_a_policy_standing_in_a_crossing_cars_path_is_driven_out_of_it():
+    """The ego stands across the path of a car that does not brake for it (``crossing_at_a_standing_ego``): a
+    policy that keeps braking is hit within about 2 s alone; shielded, the shield drives the car out of the way
+    (the recovery that drives on) and nothing is hit."""
+    from test_safety_forecast import crossing_at_a_standing_ego
+
+    alone = crossing_at_a_standing_ego()
+    for _ in range(40):
+        _, _, terminated, truncated, info = alone.step(np.array([0.0, -1.0], np.float32))
+        if terminated or truncated:
+            break
+    assert info["crash_vehicle"]
+    env = SafetyShieldWrapper(crossing_at_a_standing_ego())
+    overrides = 0
+    for _ in range(40):
+        _, _, terminated, truncated, info = env.step(np.array([0.0, -1.0], np.float32))
+        overrides += info["shield_override"]
+        assert not (info["crash_vehicle"] or info["crash_object"] or info["out_of_road"])
+        if terminated or truncated:
+            break
+    assert overrides > 0

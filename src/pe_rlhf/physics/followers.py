@@ -43,7 +43,7 @@ class Follower:
     max_speed: float
 
 
-def _follower(vehicle) -> Follower | None:
+def follower_model(vehicle) -> Follower | None:
     """The IDM model of ``vehicle``, or None for a road user without a lane (it is forecast elsewhere)."""
     lane = getattr(vehicle, "lane", None)
     if lane is None or not hasattr(vehicle, "COMFORT_ACC_MAX"):
@@ -81,7 +81,7 @@ class Followers:
             speed = float(getattr(vehicle, "speed", 0.0))
             if speed <= 0.1 or rel @ forward >= 0 or np.linalg.norm(rel) > near:
                 continue  # standing, ahead, or out of reach: forecast as the others (safety._others)
-            model = _follower(vehicle)
+            model = follower_model(vehicle)
             if model is not None:
                 self.models.append(model)
                 s0.append(model.lanes[0].local_coordinates(vehicle.position)[0])
@@ -147,4 +147,4 @@ class Followers:
         return best
 
 
-__all__ = ["Follower", "Followers"]
+__all__ = ["Follower", "Followers", "follower_model"]

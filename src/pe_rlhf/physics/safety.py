@@ -5,13 +5,15 @@ crash-free driving (or an expert's critics, which assume the expert's own contin
 module predicts it from the vehicle model instead: the ego, a kinematic bicycle (the same equations as the
 simulator's ``highway_env`` vehicle), holds the candidate action for ``hold`` seconds, then recovers as well
 as a car can: full braking, steering back along the route or with the wheels straight, whichever fails later
-(``recovery``, default ``"route_or_straight"``). A lane-following road user ahead drives on at constant speed both
+or, where braking cannot avoid a road user coming at the car, driving on ahead at full throttle along the route
+(``recovery``, default ``"route_or_straight_or_ahead"``). A lane-following road user ahead drives on at constant speed both
 along its planned lanes, steered by its own lane-keeping controller, and straight on at its velocity, a contact
 with either path a contact (:mod:`pe_rlhf.physics.road_users`; ``road_users``, default ``"lanes_or_velocity"``:
 a car in a bend, or turning off at a junction or a roundabout, is forecast there, and the straight path stands in
 for a lane change no model here foresees); any other road user keeps its velocity and static obstacles stay;
 moving road users behind drive on under the IDM, braking for the ego only once it is in their lane and no harder
-than their car can (:mod:`pe_rlhf.physics.followers`; ``followers=False``: ignored). A standing ego is safe only
+than their car can (:mod:`pe_rlhf.physics.followers`; ``followers=False``: ignored); one behind that is not a
+lane-following IDM vehicle moves as the road users ahead (it would not brake for the ego). A standing ego is safe only
 while no moving road user can reach it: the forecast runs on until none can.
 The forecast moves in the simulator's sub-steps (``1 / simulation_frequency``), and the candidate *fails* at
 the first step where, after one of them, its body touches a road user by the simulator's own test (the polygon
@@ -40,20 +42,24 @@ import numpy as np
 import torch
 from highway_env import utils
 
-from pe_rlhf.envs.action import MAX_BRAKING, MAX_STEERING, action_to_controls, controls_to_action
+from pe_rlhf.envs.action import MAX_ACCELERATION, MAX_BRAKING, MAX_STEERING, action_to_controls, controls_to_action
 from pe_rlhf.envs.driving_env import ROAD_EDGE_MARGIN  # the env's own off-road test, not a copy of it
 from pe_rlhf.envs.geometry import LANE_WIDTH
-from pe_rlhf.physics.followers import Followers
+from pe_rlhf.physics.followers import Followers, follower_model
 from pe_rlhf.physics.road_users import MODELS as ROAD_USER_MODELS
 from pe_rlhf.physics.road_users import RoadUsers
 
 NEAR = 60.0  # [m] road users farther than this cannot be reached within a forecast
 RECOVERY_STEERING_GAIN = 1.5  # [rad of wheel angle per rad of heading error] while recovering
-# The recoveries after the hold, all full braking: "route" steers back along the route's heading (one recovery);
+# The recoveries after the hold. Full braking: "route" steers back along the route's heading (one recovery);
 # "route_or_straight" also tries the wheels straight and keeps the better (steering back towards the route can
 # steer into a road user beside the car); "lanes" tracks the centre of the lane the car is nearest to, or of either
 # neighbour, and keeps the best (a lane change in progress is finished or undone, whichever is safer).
-RECOVERIES = ("route", "route_or_straight", "lanes")
+# "route_or_straight_or_ahead" adds driving on ahead, full throttle steering along the route, tried only where both
+# braking recoveries fail: a car standing across a roundabout's ring or a junction is hit by a road user that does
+# not brake for it, whatever it brakes, and can only get out of the way.
+RECOVERIES = ("route", "route_or_straight", "route_or_straight_or_ahead", "lanes")
+AHEAD = "ahead"  # the recovery mode that drives on (the others brake)
 LANE_TAU_LATERAL = 0.6  # [s] lateral-offset loop of the lane recovery (the privileged driver's)
 LANE_TAU_HEADING = 0.2  # [s] heading loop of the lane recovery
 LANE_MAX_HEADING_OFFSET = math.pi / 8  # [rad] largest angle to the lane taken to reach its centre
@@ -71,7 +77,7 @@ class SafetyForecastConfig:
     horizon: float = 3.0
     dt: float = 0.1
     recovery_braking: float = MAX_BRAKING
-    recovery: str = "route_or_straight"
+    recovery: str = "route_or_straight_or_ahead"
     hold_one_lane: bool = False
     followers: bool = True
     road_users: str = "lanes_or_velocity"
@@ -93,7 +99,7 @@ class SafetyForecastConfig:
 
 def _others(env) -> list:
     """The road users whose motion does not depend on the ego (:class:`RoadUsers`): static objects near the ego, and
-    vehicles near it and ahead of it (those behind: :class:`Followers`)."""
+    vehicles near it, ahead of it or behind it without a lane-following IDM (those with one: :class:`Followers`)."""
     ego = env.vehicle
     candidates = [obj for obj in list(env.road.vehicles) + list(env.road.objects) if obj is not ego]
     if not candidates:
@@ -101,9 +107,9 @@ def _others(env) -> list:
     rel = np.array([obj.position for obj in candidates], float) - np.asarray(ego.position, float)
     near = np.hypot(rel[:, 0], rel[:, 1]) <= NEAR
     behind = rel @ np.array([math.cos(ego.heading), math.sin(ego.heading)]) < 0
-    # a driver behind brakes for us: Followers forecasts it
+    # a driver behind brakes for us: Followers forecasts it; a road user behind without an IDM on a lane does not
     return [obj for obj, n, b in zip(candidates, near, behind)
-            if n and not (b and float(getattr(obj, "speed", 0.0)) > 0.1)]
+            if n and not (b and float(getattr(obj, "speed", 0.0)) > 0.1 and follower_model(obj) is not None)]
 
 
 _ROAD_USERS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # env -> (its road users' state, RoadUsers)
@@ -231,12 +237,15 @@ class _Forecast:
         return False
 
     def recovery_modes(self, state) -> list:
-        """The steerings the recovery tries from ``state`` (``config.recovery``), in order of preference: "route"
-        (back along the route), "straight" (the wheels straight), or lane slots (towards a lane's centre)."""
+        """The recoveries tried from ``state`` (``config.recovery``), in order of preference, each braking fully with
+        its steering: "route" (back along the route), "straight" (the wheels straight), or lane slots (towards a
+        lane's centre); last, :data:`AHEAD`: full throttle, steering along the route."""
         if self.config.recovery == "route":
             return ["route"]
         if self.config.recovery == "route_or_straight":
             return ["route", "straight"]
+        if self.config.recovery == "route_or_straight_or_ahead":
+            return ["route", "straight", AHEAD]
         route = self.env.route
         lateral = route.lateral_offset(state[0], state[3])
         nearest = min(max(int(round(lateral / LANE_WIDTH + route.lanes // 2)), 0), route.lanes - 1)
@@ -254,15 +263,21 @@ class _Forecast:
                 break
         return best, best_mode
 
+    def recovery_controls(self, state, mode) -> tuple[float, float]:
+        """``(steering angle, acceleration)`` of recovery ``mode`` at ``state``: full braking (full throttle for
+        :data:`AHEAD`) with :meth:`recovery_steering`."""
+        accel = MAX_ACCELERATION if mode == AHEAD else -self.config.recovery_braking
+        return self.recovery_steering(state, mode), accel
+
     def recovery_steering(self, state, mode) -> float:
-        """Full braking's steering: back along the route (``mode`` "route"), the wheels straight ("straight"), or
-        towards lane slot ``mode``'s centre (an int)."""
+        """The recovery's steering: back along the route (``mode`` "route" or :data:`AHEAD`), the wheels straight
+        ("straight"), or towards lane slot ``mode``'s centre (an int)."""
         if mode == "straight":
             return 0.0
         position, heading, speed, segment = state[:4]
         route = self.env.route
         ref = route.heading_at(position, segment)
-        if mode != "route":
+        if mode not in ("route", AHEAD):
             target = (mode - route.lanes // 2) * LANE_WIDTH
             error = route.lateral_offset(position, segment) - target
             speed_c = max(speed, 2.0)
@@ -274,15 +289,15 @@ class _Forecast:
         return _clip(RECOVERY_STEERING_GAIN * utils.wrap_to_pi(ref - heading), MAX_STEERING)
 
     def recover(self, state, start: int, mode) -> float:
-        """Seconds to a failure while recovering with steering ``mode`` (:meth:`recovery_steering`) from ``state``
-        (step ``start`` of the forecast)."""
+        """Seconds to a failure while recovering with ``mode`` (:meth:`recovery_controls`) from ``state`` (step
+        ``start`` of the forecast)."""
         config = self.config
         for i in range(start + 1, self.steps + 1):
             state = _on_segment(state, self.env.route.project(state[0], state[3])[0])
-            state, failed = self.step(state, self.recovery_steering(state, mode), -config.recovery_braking, i)
+            state, failed = self.step(state, *self.recovery_controls(state, mode), i)
             if failed:
                 return i * config.dt
-            if state[2] <= 0.0 and state[4] is None and self.others.clear_of(
+            if mode != AHEAD and state[2] <= 0.0 and state[4] is None and self.others.clear_of(
                     state[0], (self.ego.LENGTH + self.ego.WIDTH) / 2, i * self.substeps, config.dt / self.substeps):
                 return config.horizon  # stopped on the road, clear of everything, nothing moving near: safe
         return config.horizon
@@ -343,9 +358,9 @@ class SafetyForecastValue(torch.nn.Module):
         return self.recovery_value_and_action(env)[0]
 
     def recovery_action(self, env=None) -> torch.Tensor:
-        """``(2,)`` float32: the first step of the best recovery from now (full braking, with the steering of
-        ``config.recovery`` that fails latest, as :meth:`recovery_value` forecasts it): the action a fallback executes
-        where physics' own is forecast worse."""
+        """``(2,)`` float32: the first step of the best recovery from now (the recovery of ``config.recovery`` that
+        fails latest, as :meth:`recovery_value` forecasts it): the action a fallback executes where physics' own is
+        forecast worse."""
         return self.recovery_value_and_action(env)[1]
 
     def recovery_value_and_action(self, env=None) -> tuple[torch.Tensor, torch.Tensor]:
@@ -358,9 +373,8 @@ class SafetyForecastValue(torch.nn.Module):
         state = (np.array(sim.vehicle.position, float), float(sim.vehicle.heading), float(sim.vehicle.speed),
                  sim.route.project(sim.vehicle.position, sim.route_segment)[0], forecast.behind0)
         value, mode = forecast.best_recovery(state, 0)
-        steering = forecast.recovery_steering(state, mode)
         return (torch.tensor([[value]], dtype=torch.float32),
-                torch.as_tensor(controls_to_action(steering, -self.config.recovery_braking)))
+                torch.as_tensor(controls_to_action(*forecast.recovery_controls(state, mode))))
 
     @property
     def horizon(self) -> float:
