@@ -143,9 +143,10 @@ def measure(mentors: list[str], scenes: list[int], split: str, value: str, epsil
             imminent_failure: float | None = None, one_lane: bool = False,
             persistence: list[str] = ("off",), references: list[str] = ("physics",),
             strict: list[bool] = (False,), progress_margins: list[float | None] = (None,), save=None,
-            floor: bool = True, road_users: str | None = None) -> list[dict]:
+            floor: bool = True, road_users: str | None = None, done: list[dict] = ()) -> list[dict]:
     """Every row (see the module docstring) for every mentor, IDM-MOBIL alone once (``floor=False``: not, it is
-    measured apart). ``save(results)`` is called after each row (a long run keeps what it measured)."""
+    measured apart). ``save(results)`` is called after each row (a long run keeps what it measured); rows of
+    ``done`` (a saved run's, matched by mentor and label) are kept, not measured again."""
     world = DrivingConfig(split=split, lane_features=True)
     kind, path = parse_value_source(value)
     if kind == "warmup":
@@ -154,12 +155,15 @@ def measure(mentors: list[str], scenes: list[int], split: str, value: str, epsil
     ensemble = forecast_value(forecast_hold, forecast_recovery, one_lane, road_users) if kind == "forecast" \
         else load_value_expert(path, world_obs_dim(world))
     results = _Rows(save)
+    kept = {(r["mentor"], r["row"]): r for r in done if [e["scene"] for e in r.get("per_episode", [])] == scenes}
+
+    def add(mentor: str | None, label: str, settings: dict, run) -> None:
+        results.append(kept.get((mentor, label)) or {"mentor": mentor, "row": label, **settings, **run()})
+
     if floor:
-        results.append({"mentor": None, "row": "idm-mobil",
-                        **drive(None, scenes, split, world=world, progress="idm-mobil")})
+        add(None, "idm-mobil", {}, lambda: drive(None, scenes, split, world=world, progress="idm-mobil"))
     for mentor in mentors:
-        results.append({"mentor": mentor, "row": "as-is",
-                        **drive(mentor, scenes, split, world=world, progress=f"{mentor} as-is")})
+        add(mentor, "as-is", {}, lambda: drive(mentor, scenes, split, world=world, progress=f"{mentor} as-is"))
         for eps in epsilons:
             for margin in switch_margins:
                 for persist, reference, st, pm in [(p, r, t, m) for p in persistence for r in references
@@ -179,11 +183,9 @@ def measure(mentors: list[str], scenes: list[int], split: str, value: str, epsil
                         label += " strict"
                     if pm is not None:
                         label += f" progress={pm:g}"
-                    results.append({"mentor": mentor, "row": label, "epsilon_select": eps, "switch_margin": margin,
-                                    "persistence": persist, "reference": reference, "strict_in_danger": st,
-                                    "progress_margin": pm,
-                                    **drive(mentor, scenes, split, selector, world=world,
-                                            progress=f"{mentor} {label}")})
+                    add(mentor, label, {"epsilon_select": eps, "switch_margin": margin, "persistence": persist,
+                                        "reference": reference, "strict_in_danger": st, "progress_margin": pm},
+                        lambda: drive(mentor, scenes, split, selector, world=world, progress=f"{mentor} {label}"))
     return list(results)
 
 
@@ -304,10 +306,15 @@ def main(argv=None) -> list[dict]:
     parser.add_argument("--no-floor", action="store_true", help="leave out the idm-mobil row (one run per mentor "
                         "on a long split measures it once, apart)")
     parser.add_argument("--json", type=Path, default=None)
+    parser.add_argument("--resume", action="store_true", help="keep the rows --json already holds (same scenes), "
+                        "measure the rest: a run cut short goes on where it stopped")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     t = time.time()
     scenes = parse_scenes(args.scenes, args.split)
+    if args.resume and not args.json:
+        parser.error("--resume needs --json (the file to go on from)")
+    done = json.loads(args.json.read_text())["results"] if args.resume and args.json.exists() else []
 
     def save(results: list[dict]) -> None:
         if args.json:
@@ -327,7 +334,7 @@ def main(argv=None) -> list[dict]:
                       args.variance_threshold, args.forecast_hold, args.forecast_recovery,
                           args.veto_patience, args.imminent_failure, args.hold_one_lane, args.persistence,
                           args.references, [s == "on" for s in args.strict], args.progress_margins, save,
-                          floor=not args.no_floor, road_users=args.forecast_road_users)
+                          floor=not args.no_floor, road_users=args.forecast_road_users, done=done)
     print(format_table(results))
     print(f"{len(scenes)} {args.split} scenes ({scenes[0]}-{scenes[-1]}), value {args.value}, "
           f"{time.time() - t:.0f} s", flush=True)

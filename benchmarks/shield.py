@@ -48,7 +48,9 @@ def rates(summary: dict) -> dict:
            "timeout": float(np.mean([e["timeout"] for e in detail])), "episodes": len(detail)}
     if "override_share" in summary:
         out["override_share"] = summary["override_share"]
-        out["decision_latency_ms"] = summary["decision_latency_ms"]["mean"]
+        out["decisions"] = int(sum(e["steps"] for e in detail))  # the latency: a mean over every decision
+        out["decision_latency_ms"] = 1000 * sum(e["decision_latency"] * e["steps"] for e in detail) / out["decisions"]
+    out["scene_seeds"] = [int(e["scene_seed"]) for e in detail]
     return out
 
 
@@ -61,29 +63,40 @@ def agent_policy(run_dir: str):
 
 
 def measure(policies: dict, seeds: list[int], config: DrivingConfig, threshold: float, save=None,
-            floor: bool = True) -> dict:
+            floor: bool = True, done: dict | None = None) -> dict:
     """Each policy (name -> factory) alone and shielded; IDM-MOBIL alone once (``floor=False``: not, measured
     apart); decisions per second. ``save(results)`` is called after each policy (a long run keeps what it
-    measured)."""
+    measured); the policies of ``done`` (a saved run's, on the same scenes) are kept, not measured again."""
+    kept = {name: row for name, row in (done or {}).items()
+            if isinstance(row, dict) and row.get("alone", {}).get("scene_seeds") == list(seeds)}
     results = {}
     if floor:
-        results["idm-mobil"] = {"alone": rates(evaluate(make_policy("idm-mobil", 0), seeds, config, progress=True,
-                                                        name="idm-mobil").to_dict())}
-    latencies = []
+        results["idm-mobil"] = kept.get("idm-mobil") or {"alone": rates(evaluate(
+            make_policy("idm-mobil", 0), seeds, config, progress=True, name="idm-mobil").to_dict())}
     for name, factory in policies.items():
+        if name in kept:
+            results[name] = kept[name]
+            continue
         alone = evaluate(factory(), seeds, config, name=name).to_dict()
         shielded = evaluate(factory(), seeds, config, name=f"{name} shielded",
                             wrap_env=lambda env: SafetyShieldWrapper(env, threshold)).to_dict()
         results[name] = {"alone": rates(alone), "shielded": rates(shielded)}
-        latencies += [e["decision_latency"] for e in shielded["episodes_detail"] for _ in range(e["steps"])]
         print(f"{name}: alone {results[name]['alone']['success']:.2f}/{results[name]['alone']['violation']:.2f}, "
               f"shielded {results[name]['shielded']['success']:.2f}/{results[name]['shielded']['violation']:.2f} "
               f"override {results[name]['shielded']['override_share']:.3f}", flush=True)
         if save is not None:
-            save({**results, "decisions_per_second": 1.0 / float(np.mean(latencies))})
+            save({**results, "decisions_per_second": decisions_per_second(results)})
     results.update(agent_means(results))
-    results["decisions_per_second"] = 1.0 / float(np.mean(latencies))
+    results["decisions_per_second"] = decisions_per_second(results)
     return results
+
+
+def decisions_per_second(results: dict) -> float:
+    """1 / the mean wall-clock time of a shield's decision over every shielded step of ``results``."""
+    faces = [row["shielded"] for row in results.values() if isinstance(row, dict) and "decisions" in
+             row.get("shielded", {})]
+    steps = sum(face["decisions"] for face in faces)
+    return 1000.0 * steps / sum(face["decision_latency_ms"] * face["decisions"] for face in faces) if steps else 0.0
 
 
 def decision_cpu_time(cases=(("never-brake", 2), ("seek-collision", 5), ("random", 6)), steps: int = 100) -> dict:
@@ -142,6 +155,8 @@ def main(argv=None) -> dict:
     parser.add_argument("--threshold", type=float, default=0.5, help="the shield's threshold [s]")
     parser.add_argument("--no-floor", action="store_true", help="leave out IDM-MOBIL alone (measured once, apart)")
     parser.add_argument("--json", type=Path, default=None)
+    parser.add_argument("--resume", action="store_true", help="keep the policies --json already holds (same "
+                        "scenes), measure the rest: a run cut short goes on where it stopped")
     parser.add_argument("--cpu-time", action="store_true", help="instead: CPU time of one decision on a few train "
                         "scenes (one core's cost, not the wall clock of a shared machine)")
     args = parser.parse_args(argv)
@@ -153,6 +168,9 @@ def main(argv=None) -> dict:
     seeds = parse_scenes(args.scenes, args.split)
     if not seeds:
         parser.error(f"--scenes {args.scenes}: no {args.split} scene in that range")
+    if args.resume and not args.json:
+        parser.error("--resume needs --json (the file to go on from)")
+    done = json.loads(args.json.read_text()) if args.resume and args.json.exists() else None
     policies = {name: (lambda name=name: make_policy(name, 0)) for name in args.policies}
     for spec in args.agent:
         name, sep, run_dir = spec.partition("=")
@@ -170,7 +188,7 @@ def main(argv=None) -> dict:
                                             indent=2) + "\n")
 
     results = measure(policies, seeds, DrivingConfig(split=args.split, lane_features=True), args.threshold, save,
-                      floor=not args.no_floor)
+                      floor=not args.no_floor, done=done)
     results["meta"] = {**meta, "seconds": round(time.time() - start)}
     save(results)
     print(f"decisions per second (one thread): {results['decisions_per_second']:.0f}; {len(seeds)} {args.split} "

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import pytest
 from _scripts import load_script
 
@@ -23,7 +25,13 @@ def test_extreme_thresholds_execute_the_mentor_or_physics(bench, tmp_path):
     assert always_mentor["mentor_share"] == 1.0 and always_physics["mentor_share"] == 0.0
     # executing the mentor at every takeover step is the as-is run, step for step
     assert always_mentor["per_episode"] == as_is["per_episode"]
-    assert (tmp_path / "floor.json").exists()
+    # --resume keeps the saved rows of the same scenes and measures nothing again (a marker survives)
+    saved = json.loads((tmp_path / "floor.json").read_text())
+    saved["results"][1]["success"] = 0.123
+    (tmp_path / "floor.json").write_text(json.dumps(saved))
+    again = bench.main(["--mentors", "professional", "--scenes", "11-11", "--epsilons", "-1000000", "1000000",
+                        "--json", str(tmp_path / "floor.json"), "--resume"])
+    assert [r["row"] for r in again] == [r["row"] for r in rows] and again[1]["success"] == 0.123
 
 
 def test_takeover_rates_watch_each_driver(bench):

@@ -1,6 +1,9 @@
-"""``benchmarks/shield.py``: importable, its agent hook checks the run folder, and seeds of one method average."""
+"""``benchmarks/shield.py``: importable, its agent hook checks the run folder, seeds of one method average, and a run
+cut short goes on where it stopped."""
 
 from __future__ import annotations
+
+import json
 
 import pytest
 from _scripts import load_script
@@ -37,3 +40,19 @@ def test_shielded_never_brake_on_one_train_scene(bench, tmp_path):
     assert 0 < results["never-brake"]["shielded"]["override_share"] < 1
     assert results["decisions_per_second"] > 0 and out.exists()
     assert set(results["idm-mobil"]) == {"alone"}
+
+
+def test_resume_keeps_the_policies_measured_on_the_same_scenes(bench, tmp_path):
+    """A saved row of the same scenes is kept as it is (nothing is evaluated: the scene-0 row's marker values come
+    back); its decisions count towards decisions_per_second. --resume without --json is a usage error."""
+    face = {"success": 0.123, "violation": 0.0, "scene_seeds": [0]}
+    saved = {"random": {"alone": face, "shielded": {**face, "override_share": 0.5, "decisions": 100,
+                                                     "decision_latency_ms": 20.0}}}
+    out = tmp_path / "s.json"
+    out.write_text(json.dumps(saved))
+    results = bench.main(["--scenes", "0", "--policies", "random", "--no-floor", "--json", str(out), "--resume"])
+    assert results["random"] == saved["random"]
+    assert results["decisions_per_second"] == pytest.approx(50.0)
+    assert json.loads(out.read_text())["random"] == saved["random"]
+    with pytest.raises(SystemExit):
+        bench.main(["--scenes", "0", "--policies", "random", "--resume"])
