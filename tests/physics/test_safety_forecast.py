@@ -394,3 +394,42 @@ def test_a_car_standing_in_a_crossing_cars_path_recovers_by_driving_on():
         if terminated or truncated:
             break
     assert np.linalg.norm(env.vehicle.position - start) > 3.0 and env.road.vehicles[-1].position[1] > start[1]
+
+
+def test_a_followers_leader_and_gap_are_the_simulators():
+    """Along IDM-MOBIL's drives on train scenes 7 and 9, at every step and for every follower on
+    the lane it steers to: the forecast finds the ego as its leader where highway-env's ``neighbour_vehicles`` does,
+    with the IDM's gap ``lane_distance_to`` (in the follower's own lane's coordinates, which wrap past a curved lane's
+    end: on train scene 4 a car on the ring hardly braked for the ego on the next ring segment and rear-ended it)."""
+    from pe_rlhf.envs import DrivingConfig, make_gym_env
+    from pe_rlhf.evaluation import make_policy
+    from pe_rlhf.physics.followers import Followers
+
+    env = make_gym_env(DrivingConfig(split="train", lane_features=True))
+    policy = make_policy("idm-mobil", 0)
+    leaders = checked = 0
+    for scene in (7, 9):  # of train scenes 4-9, where followers found the ego most often
+        obs, _ = env.reset(options={"scene_seed": scene})
+        policy.reset()
+        for _ in range(600):
+            ego = env.vehicle
+            forward = np.array([np.cos(ego.heading), np.sin(ego.heading)])
+            followers = Followers(env, 60.0)
+            cars = [v for v in env.road.vehicles if v is not ego and float(v.speed) > 0.1
+                    and (v.position - ego.position) @ forward < 0 and np.linalg.norm(v.position - ego.position) <= 60]
+            assert len(cars) == len(followers.models)
+            for car, model in zip(cars, followers.models):
+                if car.lane_index != car.target_lane_index:
+                    continue  # highway-env also searches its closest lane: the forecast's follower brakes no sooner
+                front, _ = env.road.neighbour_vehicles(car, car.lane_index)
+                gap = Followers._gap_to_ego(model, 0.0, np.array(ego.position))
+                checked += 1
+                if front is ego:
+                    leaders += 1
+                    assert gap == pytest.approx(car.lane_distance_to(ego), abs=1e-6)
+                else:
+                    assert gap is None or front is not None  # another car between them: it is not modelled
+            obs, _, terminated, truncated, _ = env.step(policy(obs, env))
+            if terminated or truncated:
+                break
+    assert checked > 50 and leaders >= 5

@@ -166,3 +166,16 @@ def test_a_policy_standing_in_a_crossing_cars_path_is_driven_out_of_it():
         if terminated or truncated:
             break
     assert overrides > 0
+
+
+@pytest.mark.slow
+def test_a_shielded_random_policy_is_not_rear_ended_on_a_roundabouts_ring():
+    """The uniform random evaluation policy (seed 0, its stream running from scene 0 as in benchmarks/shield.py),
+    shielded, on train scenes 0-4: no crash, no leaving the road. On scene 4 it stood on a roundabout's ring and a car
+    behind it rear-ended it; the forecast had the car braking for it (see
+    ``test_a_followers_leader_and_gap_are_the_simulators``)."""
+    from pe_rlhf.evaluation import evaluate, make_policy
+
+    summary = evaluate(make_policy("random", 0), [0, 1, 2, 3, 4], DrivingConfig(split="train", lane_features=True),
+                       wrap_env=SafetyShieldWrapper).to_dict()
+    assert not any(e["crash_vehicle"] or e["crash_object"] or e["out_of_road"] for e in summary["episodes_detail"])

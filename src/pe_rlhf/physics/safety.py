@@ -45,7 +45,7 @@ from highway_env import utils
 from pe_rlhf.envs.action import MAX_ACCELERATION, MAX_BRAKING, MAX_STEERING, action_to_controls, controls_to_action
 from pe_rlhf.envs.driving_env import ROAD_EDGE_MARGIN  # the env's own off-road test, not a copy of it
 from pe_rlhf.envs.geometry import LANE_WIDTH
-from pe_rlhf.physics.followers import Followers, follower_model
+from pe_rlhf.physics.followers import Followers, is_lane_follower
 from pe_rlhf.physics.road_users import MODELS as ROAD_USER_MODELS
 from pe_rlhf.physics.road_users import RoadUsers
 
@@ -109,7 +109,7 @@ def _others(env) -> list:
     behind = rel @ np.array([math.cos(ego.heading), math.sin(ego.heading)]) < 0
     # a driver behind brakes for us: Followers forecasts it; a road user behind without an IDM on a lane does not
     return [obj for obj, n, b in zip(candidates, near, behind)
-            if n and not (b and float(getattr(obj, "speed", 0.0)) > 0.1 and follower_model(obj) is not None)]
+            if n and not (b and float(getattr(obj, "speed", 0.0)) > 0.1 and is_lane_follower(obj))]
 
 
 _ROAD_USERS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # env -> (its road users' state, RoadUsers)
