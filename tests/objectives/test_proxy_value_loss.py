@@ -129,6 +129,31 @@ def test_the_mask_leaves_takeover_start_rows_out_of_the_td_term():
     torch.testing.assert_close(masked["proxy_loss"], plain["proxy_loss"])
 
 
+def test_the_batch_reduction_is_pvps_released_loss():
+    """``proxy_reduction="batch"``: both labels' squared errors averaged over the whole batch (agent rows, where the
+    proposal is the executed action, pulled to +B and -B at once), times the takeover share; TD weighted 0.5."""
+    td = batch()
+    takeover = td["next", "intervention"].squeeze(-1)
+    loss = hand_built_loss(q_value_bound=2.0, proxy_reduction="batch")
+    out = loss(td)
+    with torch.no_grad():
+        obs, executed, agent = td["observation"], td["next", "behavior_action"], td["action"]
+        q = q_by_hand(loss.qvalue_network_params, obs, executed)
+        q_agent = q_by_hand(loss.qvalue_network_params, obs, agent)
+        next_q = q_by_hand(loss.target_qvalue_network_params, td["next", "observation"],
+                           torch.tensor([0.6, 0.1]).expand(6, 2)).min(0)[0]
+        target = 0.99 * (1 - td["next", "terminated"].squeeze(-1).float()) * next_q
+        td_loss = 0.5 * (q - target).pow(2).mean(-1).sum()
+        proxy = takeover.float().mean() * ((q - 2.0).pow(2).mean(-1) + (q_agent + 2.0).pow(2).mean(-1)).sum()
+    torch.testing.assert_close(out["td_loss"], td_loss)
+    torch.testing.assert_close(out["proxy_loss"], proxy)
+    torch.testing.assert_close(out["q_agent"], q_agent.mean(0)[takeover].mean())
+    without = batch(takeover=(0,) * 6, start=(0,) * 6)
+    assert hand_built_loss(proxy_reduction="batch")(without)["proxy_loss"].item() == 0.0
+    with pytest.raises(ValueError, match="proxy_reduction='rows' is invalid"):
+        hand_built_loss(proxy_reduction="rows")
+
+
 def test_target_noise_is_clipped_and_the_target_action_stays_in_bounds():
     loss = hand_built_loss(target_noise=10.0, target_noise_clip=0.3)
     td = batch()

@@ -10,6 +10,10 @@ returns:
   ``sum_k mean_{I=1} [(Q_k(s, a_exec) - B)^2 + (Q_k(s, a_AV) - (-B))^2]``; 0 on a batch without a takeover.
   During a PE-RLHF takeover the executed action is the hybrid's (mentor or physics): the loss need not know which
   (labelling only the mentor's rows was measured and lost: docs/experiments/learner.md).
+  ``proxy_reduction="batch"`` is PVP's released code instead (``pvp_td3.py``): both squared errors averaged over the
+  *whole* batch and scaled by its share of takeover rows, so a row without a takeover, where ``a_AV = a_exec``, is
+  pulled to ``+B`` and ``-B`` at once, i.e. towards 0; and ``loss_td`` weighted 0.5:
+  ``mean(I) * sum_k [mean (Q_k(s, a_exec) - B)^2 + mean (Q_k(s, a_AV) + B)^2]``.
 - ``loss_td``: zero-reward TD on every row at the executed action, twin critics, TD3's target
   ``y = gamma * (1 - terminated) * min_k Q'_k(s', clip(pi'(s') + clip(N(0, sigma), -c, c), -1, 1))``,
   ``sum_k mean (Q_k(s, a_exec) - y)^2``. With ``mask_td_at_takeover_start`` the rows where a takeover starts
@@ -46,6 +50,9 @@ from torchrl.objectives.utils import _vmap_func
 from pe_rlhf.objectives.contract import KeyedLoss, TakeoverKeys, next_keys
 
 
+PROXY_REDUCTIONS = ("takeover_rows", "batch")  # ProxyValueLoss.proxy_reduction
+
+
 class ProxyValueLoss(KeyedLoss, LossModule):
     """PVP's bounded proxy values on takeover rows, zero-reward TD3 on every row, a deterministic actor.
 
@@ -63,6 +70,8 @@ class ProxyValueLoss(KeyedLoss, LossModule):
         policy_delay: the actor is updated every ``policy_delay``-th call (TD3: 2).
         bc_weight: weight of behaviour cloning toward the executed action on takeover rows (0: off).
         mask_td_at_takeover_start: leave takeover-start rows out of the TD term (PVP's mask).
+        proxy_reduction: ``"takeover_rows"`` (the proxy labels on takeover rows only) or ``"batch"`` (PVP's released
+            code: over the whole batch, scaled by the takeover share, and TD weighted 0.5; module docstring).
     """
 
     @dataclass
@@ -86,8 +95,13 @@ class ProxyValueLoss(KeyedLoss, LossModule):
     def __init__(self, actor_network: TensorDictModule, qvalue_network: TensorDictModule, *,
                  q_value_bound: float = 1.0, gamma: float = 0.99, num_qvalue_nets: int = 2,
                  target_noise: float = 0.2, target_noise_clip: float = 0.5, policy_delay: int = 2,
-                 bc_weight: float = 0.0, mask_td_at_takeover_start: bool = False) -> None:
+                 bc_weight: float = 0.0, mask_td_at_takeover_start: bool = False,
+                 proxy_reduction: str = "takeover_rows") -> None:
         super().__init__()
+        if proxy_reduction not in PROXY_REDUCTIONS:
+            raise ValueError(f"ProxyValueLoss proxy_reduction={proxy_reduction!r} is invalid: allowed "
+                             f"{list(PROXY_REDUCTIONS)}")
+        self.proxy_reduction = proxy_reduction
         for name, value, low in (("q_value_bound", q_value_bound, 0.0), ("target_noise", target_noise, 0.0),
                                  ("target_noise_clip", target_noise_clip, 0.0), ("bc_weight", bc_weight, 0.0)):
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) \
@@ -165,10 +179,12 @@ class ProxyValueLoss(KeyedLoss, LossModule):
         takeover = tensordict.get(keys.intervention).reshape(-1).bool()
         behavior, agent = tensordict.get(keys.behavior_action), tensordict.get(keys.action)
         rows = tensordict.shape[0]
-        # one critic pass: the executed action on every row, then the agent's proposal on the takeover rows
+        # one critic pass: the executed action on every row, then the agent's proposal on the takeover rows (on
+        # every row where the proxy term reads the whole batch)
         state = tensordict.select(*self.state_keys, strict=False)
-        both = torch.cat([state, state[takeover]], 0)
-        q_all = self._q(self.qvalue_network_params, both, torch.cat([behavior, agent[takeover]], 0))
+        labelled = takeover if self.proxy_reduction == "takeover_rows" else torch.ones_like(takeover)
+        both = torch.cat([state, state[labelled]], 0)
+        q_all = self._q(self.qvalue_network_params, both, torch.cat([behavior, agent[labelled]], 0))
         q_exec, q_agent = q_all[:, :rows], q_all[:, rows:]
 
         target = self.td_target(tensordict)
@@ -178,8 +194,13 @@ class ProxyValueLoss(KeyedLoss, LossModule):
         td_error = (q_exec - target)[:, td_rows]
         loss_td = td_error.pow(2).mean(-1).sum(0) if td_rows.any() else q_all.new_zeros(())
         zero = q_all.new_zeros(())
-        if takeover.any():  # q_agent holds the takeover rows only
-            bound = self.q_value_bound
+        bound = self.q_value_bound
+        if self.proxy_reduction == "batch":  # PVP's released code: q_agent holds every row
+            loss_td = 0.5 * loss_td
+            loss_proxy = takeover.float().mean() * ((q_exec - bound).pow(2).mean(-1)
+                                                    + (q_agent + bound).pow(2).mean(-1)).sum(0)
+            q_agent = q_agent[:, takeover]
+        elif takeover.any():  # q_agent holds the takeover rows only
             loss_proxy = ((q_exec[:, takeover] - bound).pow(2).mean(-1) + (q_agent + bound).pow(2).mean(-1)).sum(0)
         else:
             loss_proxy = zero

@@ -24,6 +24,7 @@ from typing import Any, NamedTuple, Optional
 
 from pe_rlhf.modules.precision import PRECISIONS
 from pe_rlhf.objectives.perlhf import FAILURE_TARGETS
+from pe_rlhf.objectives.proxy_value import PROXY_REDUCTIONS
 from pe_rlhf.runtime.config_compose import RecipeSchema
 from pe_rlhf.runtime.config_rules import (SPLITS, Rule, rule_bool, rule_choice, rule_hidden, rule_int,
                                           rule_mentor_name, rule_number, rule_optional, rule_string,
@@ -209,6 +210,9 @@ class ProxyValueLossConfig(LossCommon):
     target_noise: float = knob(0.2, rule_number(0))  # TD3's target smoothing sigma (clipped at 2.5 sigma, TD3's 0.5)
     bc_weight: float = knob(0.0, rule_number(0))  # behaviour cloning on takeover rows (PVP4Real)
     mask_td_at_takeover_start: bool = knob(False, rule_bool)  # leave the rows where a takeover starts out of TD (PVP)
+    # takeover_rows: the proxy labels on takeover rows | batch: PVP's released code (over the whole batch, times the
+    # takeover share, so agent rows are pulled to 0; TD weighted 0.5)
+    proxy_reduction: str = knob("takeover_rows", rule_choice(*PROXY_REDUCTIONS))
 
 
 # loss.objective -> its group's settings
