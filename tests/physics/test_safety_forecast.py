@@ -422,7 +422,7 @@ def test_a_followers_leader_and_gap_are_the_simulators():
                 if car.lane_index != car.target_lane_index:
                     continue  # highway-env also searches its closest lane: the forecast's follower brakes no sooner
                 front, _ = env.road.neighbour_vehicles(car, car.lane_index)
-                gap = Followers._gap_to_ego(model, 0.0, np.array(ego.position))
+                gap = Followers._gap_to_ego(model, model.pose(0.0)[0], np.array(ego.position))
                 checked += 1
                 if front is ego:
                     leaders += 1

@@ -23,7 +23,9 @@ can only make the forecast more cautious.
 
 from __future__ import annotations
 
+import bisect
 import math
+import weakref
 from dataclasses import dataclass
 
 import numpy as np
@@ -59,15 +61,19 @@ class Follower:
     acc_max: float
     max_speed: float
 
+    def __post_init__(self) -> None:  # Python lists: one pose is a few floats, where numpy's calls cost more
+        object.__setattr__(self, "_path", (self.distances.tolist(), self.points[:, 0].tolist(),
+                                           self.points[:, 1].tolist(), self.headings.tolist()))
+
     def pose(self, s: float) -> tuple[np.ndarray, float]:
         """``(position (2,), heading)`` at distance ``s`` along the path (straight on past its end)."""
-        if s >= self.distances[-1]:
-            heading = float(self.headings[-1])
-            return self.points[-1] + (s - self.distances[-1]) * np.array([math.cos(heading), math.sin(heading)]), \
-                heading
-        x = float(np.interp(s, self.distances, self.points[:, 0]))
-        y = float(np.interp(s, self.distances, self.points[:, 1]))
-        return np.array((x, y)), float(np.interp(s, self.distances, self.headings))
+        d, x, y, h = self._path
+        if s >= d[-1]:
+            return np.array((x[-1] + (s - d[-1]) * math.cos(h[-1]), y[-1] + (s - d[-1]) * math.sin(h[-1]))), h[-1]
+        i = max(bisect.bisect_right(d, s), 1)
+        w = (s - d[i - 1]) / (d[i] - d[i - 1]) if d[i] > d[i - 1] else 0.0
+        return np.array((x[i - 1] + w * (x[i] - x[i - 1]), y[i - 1] + w * (y[i] - y[i - 1]))), \
+            h[i - 1] + w * (h[i] - h[i - 1])
 
     def lane_at(self, position: np.ndarray) -> int:
         """Which lane of its route (an index into ``lanes``) the follower is on at ``position``: the first whose end
@@ -119,10 +125,37 @@ def searched_lanes(network, index) -> tuple:
     return tuple(out)
 
 
+_MODELS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # vehicle -> (its state, its Follower)
+_BOXES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # lane -> the box around its on_lane region
+
+
+def _on_lane_box(lane) -> tuple[float, float, float, float]:
+    """``(x min, y min, x max, y max)`` around the region where ``on_lane`` with the 1 m margin holds (sampled every
+    2 m along the lane, widened by a metre for the chord of a curved lane between samples)."""
+    box = _BOXES.get(lane)
+    if box is None:
+        half = max(lane.width_at(0.0), lane.width_at(lane.length)) / 2 + ON_LANE_MARGIN + 1.0
+        s = np.linspace(-ON_LANE_LENGTH, lane.length + ON_LANE_LENGTH, max(int(lane.length / 2.0), 2) + 6)
+        points = np.array([lane.position(si, lat) for si in s for lat in (-half, half)])
+        box = _BOXES[lane] = (*points.min(0).tolist(), *points.max(0).tolist())
+    return box
+
+
 def follower_model(vehicle) -> Follower | None:
-    """The IDM model of ``vehicle``, or None for a road user without a lane (it is forecast elsewhere)."""
+    """The IDM model of ``vehicle``, or None for a road user without a lane (it is forecast elsewhere); built once
+    per state of the vehicle (the forecasts of one decision share it)."""
     if not is_lane_follower(vehicle):
         return None
+    key = (float(vehicle.position[0]), float(vehicle.position[1]), float(vehicle.heading), float(vehicle.speed),
+           vehicle.lane_index, getattr(vehicle, "target_lane_index", None), tuple(getattr(vehicle, "route", None) or ()),
+           float(getattr(vehicle, "target_speed", vehicle.speed)))
+    hit = _MODELS.get(vehicle)
+    if hit is None or hit[0] != key:
+        hit = _MODELS[vehicle] = (key, _build_model(vehicle))
+    return hit[1]
+
+
+def _build_model(vehicle) -> Follower:
     speed = float(vehicle.speed)
     if follows_lanes(vehicle):
         points, headings = cached_path(vehicle, PATH_STEP, int(round(PATH_SECONDS / PATH_STEP)))
@@ -181,9 +214,9 @@ class Followers:
         accel = np.empty_like(v)
         for j, m in enumerate(self.models):
             a = m.comfort_acc * (1.0 - (max(v[j], 0.0) / m.target_speed) ** m.delta)
-            gap = self._gap_to_ego(m, s[j], ego_position)
+            position, heading = m.pose(float(s[j]))
+            gap = self._gap_to_ego(m, position, ego_position)
             if gap is not None:
-                heading = m.pose(float(s[j]))[1]
                 dv = v[j] - float(ego_velocity @ np.array([math.cos(heading), math.sin(heading)]))
                 wanted = m.distance_wanted + v[j] * m.time_wanted + v[j] * dv / (2 * math.sqrt(
                     -m.comfort_acc * m.comfort_dec))
@@ -204,15 +237,19 @@ class Followers:
         return out
 
     @staticmethod
-    def _gap_to_ego(model: Follower, s: float, ego_position: np.ndarray) -> float | None:
+    def _gap_to_ego(model: Follower, position: np.ndarray, ego_position: np.ndarray) -> float | None:
         """The IDM's gap to the ego while the ego is the follower's leader, as highway-env computes both
         (module docstring: ``neighbour_vehicles`` over the searched lanes, then ``lane_distance_to`` in the
-        follower's own lane's coordinates, which can be negative); None when it is not its leader."""
-        position, _ = model.pose(s)
+        follower's own lane's coordinates, which can be negative), the follower at ``position`` (on its path); None
+        when it is not its leader."""
         k = model.lane_at(position)
         lane = model.lanes[k]
         s_self = lane.local_coordinates(position)[0]
+        x, y = float(ego_position[0]), float(ego_position[1])
         for searched, offset in model.searched[k]:
+            box = _on_lane_box(searched)
+            if not (box[0] <= x <= box[2] and box[1] <= y <= box[3]):
+                continue  # nowhere near the lane: not on it (a few comparisons instead of its coordinates)
             s_ego, lat_ego = searched.local_coordinates(ego_position)
             if abs(lat_ego) > searched.width_at(s_ego) / 2 + ON_LANE_MARGIN \
                     or not -ON_LANE_LENGTH <= s_ego < searched.length + ON_LANE_LENGTH:
