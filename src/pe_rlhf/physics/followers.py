@@ -17,8 +17,8 @@ connected to that lane's end or start (the env searches connected lanes), by ``o
 is no distance at all (a circular lane's coordinates wrap: a car on a roundabout's ring hardly brakes for the ego
 on the next ring segment until it is on that segment itself; train scene 4, a rear-end at 5 m/s). highway-env also
 tests the lane its car is *closest* to, which near a merge can be another lane: the forecast's follower brakes no
-sooner than the simulator's there. Other leaders of the follower (a car between it and the ego) are not modelled: it would drive through them, which
-can only make the forecast more cautious.
+sooner than the simulator's there. Other leaders of the follower (a car between it and the ego) are not modelled: it
+would drive through them, which can only make the forecast more cautious.
 """
 
 from __future__ import annotations
@@ -147,7 +147,8 @@ def follower_model(vehicle) -> Follower | None:
     if not is_lane_follower(vehicle):
         return None
     key = (float(vehicle.position[0]), float(vehicle.position[1]), float(vehicle.heading), float(vehicle.speed),
-           vehicle.lane_index, getattr(vehicle, "target_lane_index", None), tuple(getattr(vehicle, "route", None) or ()),
+           vehicle.lane_index, getattr(vehicle, "target_lane_index", None),
+           tuple(getattr(vehicle, "route", None) or ()),
            float(getattr(vehicle, "target_speed", vehicle.speed)))
     hit = _MODELS.get(vehicle)
     if hit is None or hit[0] != key:

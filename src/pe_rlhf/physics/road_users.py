@@ -16,8 +16,8 @@ forecast: a lane change the vehicle has not started yet (MOBIL), a change of spe
 or at a stop line, slowing into a bend, accelerating out of one), a crashed vehicle's stop. The forecast's default
 (:class:`RoadUsers` ``model="lanes_or_velocity"``) therefore also moves each lane follower straight on at its
 velocity, the model before, and counts a contact with either path: on never-brake's train scene 7 a truck's lane
-change at a roundabout's entry was caught only by the straight path (docs/guide/shield.md). Every other road user
-keeps its velocity: a static obstacle stays where it is.
+change at a roundabout's entry was caught only by the straight path (docs/experiments/shield-calibration.md). Every
+other road user keeps its velocity: a static obstacle stays where it is.
 """
 
 from __future__ import annotations

@@ -4,10 +4,10 @@ The value estimator of the hybrid selector must know that an action is *bad*, an
 crash-free driving (or an expert's critics, which assume the expert's own continuation) does not. This
 module predicts it from the vehicle model instead: the ego, a kinematic bicycle (the same equations as the
 simulator's ``highway_env`` vehicle), holds the candidate action for ``hold`` seconds, then recovers as well
-as a car can: full braking, steering back along the route or with the wheels straight, whichever fails later
-or, where braking cannot avoid a road user coming at the car, driving on ahead at full throttle along the route
-(``recovery``, default ``"route_or_straight_or_ahead"``). A lane-following road user ahead drives on at constant speed both
-along its planned lanes, steered by its own lane-keeping controller, and straight on at its velocity, a contact
+as a car can: full braking, steering back along the route or with the wheels straight, or, where braking cannot
+avoid a road user coming at the car, driving on ahead at full throttle along the route, whichever fails latest
+(``recovery``, default ``"route_or_straight_or_ahead"``). A lane-following road user ahead drives on at constant speed
+both along its planned lanes, steered by its own lane-keeping controller, and straight on at its velocity, a contact
 with either path a contact (:mod:`pe_rlhf.physics.road_users`; ``road_users``, default ``"lanes_or_velocity"``:
 a car in a bend, or turning off at a junction or a roundabout, is forecast there, and the straight path stands in
 for a lane change no model here foresees); any other road user keeps its velocity and static obstacles stay;

@@ -83,7 +83,8 @@ class HybridActionSelector(TensorDictModuleBase):
     makes): where physics' action is safe over the whole forecast, the mentor's must also make at least physics'
     progress less ``progress_margin``, or physics drives. A time-to-failure value cannot tell a safe action
     that stops the car from one that drives on: a random mentor, whose actions are rarely forecast to fail,
-    kept the wheel 88% of its takeover steps and its mean braking stopped the car (docs/guide/shield.md).
+    kept the wheel 88% of its takeover steps and its mean braking stopped the car
+    (docs/experiments/shield-calibration.md).
     """
 
     def __init__(
