@@ -143,9 +143,10 @@ def epsilon_select(cfg) -> float:
 
 # The rule over selector.value=forecast (HybridActionSelector's arguments): the executed-action floor held against the
 # presets and the persistent adversaries on train scenes 0-9 with it (docs/experiments/shield-calibration.md, issue
-# 42). A veto holds until the mentor's action repeated is no worse (latch); the mentor is compared with the better of physics' action and
-# braking at once, and the better one runs (physics_or_recovery); no slack where that fallback itself fails (strict);
-# where physics is safe, the mentor's action must make physics' progress less 1 m (a safe action can stop the car).
+# 42). A veto holds until the mentor's action repeated is no worse (latch); the mentor is compared with the better of
+# physics' action and braking at once, and the better one runs (physics_or_recovery); no slack where that fallback
+# itself fails (strict); where physics is safe, the mentor's action must make physics' progress less 1 m (a safe
+# action can stop the car).
 FORECAST_RULE = {"persistence": "latch", "reference": "physics_or_recovery", "strict_in_danger": True,
                  "progress_margin": 1.0}
 
