@@ -249,6 +249,21 @@ def parse_scenes(text: str, split: str) -> list[int]:
     return [s for s in seeds if first <= s <= last] or list(seeds[first:last + 1])
 
 
+def mentor_kwargs(items: list[str], stall_speed: float | None, parser) -> dict | None:
+    """``FIELD=VALUE`` items (numbers, or true/false) and ``--stall-speed`` as the mentors' SkillProfile kwargs."""
+    out = {} if stall_speed is None else {"stall_speed": stall_speed}
+    for item in items:
+        field, sep, value = item.partition("=")
+        if not sep or not field:
+            parser.error(f"--mentor-kwargs {item!r}: FIELD=VALUE")
+        try:
+            out[field] = {"true": True, "false": False}[value.lower()] if value.lower() in ("true", "false") \
+                else (int(value) if value.lstrip("-").isdigit() else float(value))
+        except ValueError:
+            parser.error(f"--mentor-kwargs {item!r}: VALUE must be a number, true or false")
+    return out or None
+
+
 def margin_arg(text: str) -> float | None:
     return None if text.lower() == "none" else (math.inf if text.lower() == "inf" else float(text))
 
@@ -301,6 +316,8 @@ def main(argv=None) -> list[dict]:
                              "idm-mobil idm-mobil-blind random)")
     parser.add_argument("--stall-speed", type=float, default=None, help="with --takeover-rates: the mentors' "
                         "SkillProfile.stall_speed [m/s] (the stall test's speed)")
+    parser.add_argument("--mentor-kwargs", nargs="+", default=[], metavar="FIELD=VALUE",
+                        help="with --takeover-rates: other SkillProfile fields of the mentors (e.g. steer_tolerance=0.3)")
     parser.add_argument("--warmup", action="store_true", help="instead: the warm-up's executed actions, the mentor "
                         "alone and under the selector (selector.warmup_selection)")
     parser.add_argument("--no-floor", action="store_true", help="leave out the idm-mobil row (one run per mentor "
@@ -328,7 +345,7 @@ def main(argv=None) -> list[dict]:
     elif args.takeover_rates is not None:
         results = takeover_rates(args.mentors, args.takeover_rates or ["idm-mobil-oracle", "idm-mobil",
                                                                        "idm-mobil-blind", "random"], scenes, args.split,
-                                 None if args.stall_speed is None else {"stall_speed": args.stall_speed})
+                                 mentor_kwargs(args.mentor_kwargs, args.stall_speed, parser))
     else:
         results = measure(args.mentors, scenes, args.split, args.value, args.epsilons, args.switch_margins,
                       args.variance_threshold, args.forecast_hold, args.forecast_recovery,
