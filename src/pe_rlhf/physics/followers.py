@@ -33,7 +33,6 @@ import numpy as np
 from pe_rlhf.physics.road_users import cached_path, follows_lanes
 
 ON_LANE_MARGIN = 1.0  # [m] highway-env's neighbour_vehicles: a vehicle this far outside a lane is still in it
-ON_LANE_LENGTH = 5.0  # [m] highway-env's AbstractLane.VEHICLE_LENGTH: on a lane from this far before its start
 LEADER_MIN_GAP = 0.01  # [m] highway-env's utils.not_zero floor of the IDM's gap
 PATH_STEP = 0.1  # [s] the step of a follower's path (the forecast's)
 PATH_SECONDS = 4.0  # [s] of a follower's path at its speed (the forecast's 3 s and more; then straight on)
@@ -45,9 +44,7 @@ class Follower:
     apart (``(s, speed)`` in :meth:`Followers.initial`, ``s`` the distance along its path) so a forecast can
     branch."""
 
-    points: np.ndarray  # (N, 2) its path
-    headings: np.ndarray  # (N,)
-    distances: np.ndarray  # (N,) distance along the path to each point
+    path: tuple  # (distances, xs, ys, headings): float lists of its path's points (distance along the path first)
     lanes: tuple  # the lanes of its route the path runs along, in order
     searched: tuple  # per lane of ``lanes``: ((lane, offset), ...) where highway-env looks for its leader
     length: float
@@ -61,13 +58,10 @@ class Follower:
     acc_max: float
     max_speed: float
 
-    def __post_init__(self) -> None:  # Python lists: one pose is a few floats, where numpy's calls cost more
-        object.__setattr__(self, "_path", (self.distances.tolist(), self.points[:, 0].tolist(),
-                                           self.points[:, 1].tolist(), self.headings.tolist()))
-
     def pose(self, s: float) -> tuple[np.ndarray, float]:
-        """``(position (2,), heading)`` at distance ``s`` along the path (straight on past its end)."""
-        d, x, y, h = self._path
+        """``(position (2,), heading)`` at distance ``s`` along the path (straight on past its end; Python lists:
+        one pose is a few floats, where numpy's calls cost more)."""
+        d, x, y, h = self.path
         if s >= d[-1]:
             return np.array((x[-1] + (s - d[-1]) * math.cos(h[-1]), y[-1] + (s - d[-1]) * math.sin(h[-1]))), h[-1]
         i = max(bisect.bisect_right(d, s), 1)
@@ -135,7 +129,7 @@ def _on_lane_box(lane) -> tuple[float, float, float, float]:
     box = _BOXES.get(lane)
     if box is None:
         half = max(lane.width_at(0.0), lane.width_at(lane.length)) / 2 + ON_LANE_MARGIN + 1.0
-        s = np.linspace(-ON_LANE_LENGTH, lane.length + ON_LANE_LENGTH, max(int(lane.length / 2.0), 2) + 6)
+        s = np.linspace(-lane.VEHICLE_LENGTH, lane.length + lane.VEHICLE_LENGTH, max(int(lane.length / 2.0), 2) + 6)
         points = np.array([lane.position(si, lat) for si in s for lat in (-half, half)])
         box = _BOXES[lane] = (*points.min(0).tolist(), *points.max(0).tolist())
     return box
@@ -163,14 +157,15 @@ def _build_model(vehicle) -> Follower:
     else:
         points, headings = np.asarray(vehicle.position, float)[None], np.array([float(vehicle.heading)])
     steps = np.hypot(*np.diff(points, axis=0).T) if len(points) > 1 else np.zeros(0)
-    distances = np.concatenate([[0.0], np.cumsum(steps)])
+    path = (np.concatenate([[0.0], np.cumsum(steps)]).tolist(), points[:, 0].tolist(), points[:, 1].tolist(),
+            np.asarray(headings, float).tolist())
     target_speed = float(getattr(vehicle, "target_speed", speed))
     lane = vehicle.lane
     if getattr(lane, "speed_limit", None) is not None:
         target_speed = float(np.clip(target_speed, 0.0, lane.speed_limit))
     network = vehicle.road.network
     indices = route_lanes(vehicle)
-    return Follower(points, headings, distances, tuple(network.get_lane(i) for i in indices),
+    return Follower(path, tuple(network.get_lane(i) for i in indices),
                     tuple(searched_lanes(network, i) for i in indices), float(vehicle.LENGTH), float(vehicle.WIDTH),
                     float(vehicle.COMFORT_ACC_MAX), float(vehicle.COMFORT_ACC_MIN), float(vehicle.DISTANCE_WANTED),
                     float(vehicle.TIME_WANTED), float(vehicle.DELTA), max(target_speed, 0.1),
@@ -252,8 +247,7 @@ class Followers:
             if not (box[0] <= x <= box[2] and box[1] <= y <= box[3]):
                 continue  # nowhere near the lane: not on it (a few comparisons instead of its coordinates)
             s_ego, lat_ego = searched.local_coordinates(ego_position)
-            if abs(lat_ego) > searched.width_at(s_ego) / 2 + ON_LANE_MARGIN \
-                    or not -ON_LANE_LENGTH <= s_ego < searched.length + ON_LANE_LENGTH:
+            if not searched.on_lane(ego_position, s_ego, lat_ego, margin=ON_LANE_MARGIN):
                 continue
             if s_ego + offset < s_self:
                 return None  # found behind it: not its leader

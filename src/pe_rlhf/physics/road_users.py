@@ -121,7 +121,6 @@ class RoadUsers:
         self.lengths = np.array([float(o.LENGTH) for o in objects])
         self.widths = np.array([float(o.WIDTH) for o in objects])
         self.speeds = np.array([float(getattr(o, "speed", 0.0)) for o in objects])
-        self.moving = bool((self.speeds != 0.0).any())
         times = np.arange(steps * substeps + 1) * (dt / substeps)  # every sub-step's instant
         start = np.array([o.position for o in objects], float).reshape(self.count, 2)
         heading = np.array([float(o.heading) for o in objects])
@@ -179,7 +178,6 @@ class RoadUsers:
                 if math.hypot(point[0] - x, point[1] - y) <= reach + (length + width) / 2 + speed_dt + speed * dt:
                     out.append((np.array(point), heading, length, width, np.array(velocity)))
         return out
-
 
     def clear_of(self, position, reach: float, k: int, dt: float) -> bool:
         """Whether no moving road user comes within ``reach`` plus its half length and width plus its travel over

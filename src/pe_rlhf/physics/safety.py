@@ -11,10 +11,10 @@ both along its planned lanes, steered by its own lane-keeping controller, and st
 with either path a contact (:mod:`pe_rlhf.physics.road_users`; ``road_users``, default ``"lanes_or_velocity"``:
 a car in a bend, or turning off at a junction or a roundabout, is forecast there, and the straight path stands in
 for a lane change no model here foresees); any other road user keeps its velocity and static obstacles stay;
-moving road users behind drive on under the IDM, braking for the ego only once it is in their lane and no harder
-than their car can (:mod:`pe_rlhf.physics.followers`; ``followers=False``: ignored); one behind that is not a
-lane-following IDM vehicle moves as the road users ahead (it would not brake for the ego). A standing ego is safe only
-while no moving road user can reach it: the forecast runs on until none can.
+moving road users behind drive on along their route under the IDM, braking for the ego where highway-env's IDM
+does and no harder than their car can (:mod:`pe_rlhf.physics.followers`; ``followers=False``: ignored); one behind
+that is not a lane-following IDM vehicle moves as the road users ahead (it would not brake for the ego). A standing
+ego is safe only while no moving road user can reach it: the forecast runs on until none can.
 The forecast moves in the simulator's sub-steps (``1 / simulation_frequency``), and the candidate *fails* at
 the first step where, after one of them, its body touches a road user by the simulator's own test (the polygon
 test with each body pushed on by its velocity over the sub-step, which the env counts as a crash), or where its
