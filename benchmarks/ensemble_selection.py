@@ -32,6 +32,7 @@ import torch
 from tqdm import tqdm
 
 from pe_rlhf.envs import DrivingConfig, scene_seeds
+from pe_rlhf.envs.splits import SPLITS
 from pe_rlhf.envs.torchrl_env import make_env, unwrap
 from pe_rlhf.evaluation.policies import PhysicsPolicyAdapter, make_policy, register_policy
 from pe_rlhf.mentors import make_mentor
@@ -281,7 +282,7 @@ def format_table(results: list[dict]) -> str:
 def main(argv=None) -> list[dict]:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--mentors", nargs="+", default=["professional", "adversarial"])
-    parser.add_argument("--split", choices=["train", "test"], default="train")
+    parser.add_argument("--split", choices=list(SPLITS), default="train")
     parser.add_argument("--scenes", default="0-19",
                         help="a range of the split's scene seeds (train 0-..., test 1000-...)")
     parser.add_argument("--value", default="expert", help="selector.value: expert | expert:PATH | forecast")

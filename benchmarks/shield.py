@@ -29,6 +29,7 @@ import torch
 
 import pe_rlhf.mentors.registry  # noqa: F401  (registers the presets and the adversaries as policies)
 from pe_rlhf.envs import DrivingConfig, scene_seeds
+from pe_rlhf.envs.splits import SPLITS
 from pe_rlhf.evaluation import evaluate, make_policy
 from pe_rlhf.evaluation.statistics import bootstrap_interval
 from pe_rlhf.mentors import ADVERSARY_NAMES
@@ -147,7 +148,7 @@ def parse_scenes(text: str, split: str) -> list[int]:
 
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--split", choices=["train", "test"], default="train")
+    parser.add_argument("--split", choices=list(SPLITS), default="train")
     parser.add_argument("--scenes", default="0-9", help="a range of the split's scene seeds (test: 1000-1049)")
     parser.add_argument("--policies", nargs="*", default=list(POLICIES), help=f"default: {list(POLICIES)}")
     parser.add_argument("--agent", action="append", default=[], metavar="NAME=RUN_DIR",

@@ -13,11 +13,12 @@ import pytest
 from highway_env import utils
 from highway_env.vehicle.objects import Obstacle
 
-from pe_rlhf.envs import DrivingConfig, TEST_SEEDS, TRAIN_SEEDS, make_gym_env, parse_seeds, scene_seeds
+from pe_rlhf.envs import (DrivingConfig, TEST_SEEDS, TRAIN_SEEDS, VALIDATION_SEEDS, make_gym_env, parse_seeds,
+                          scene_seeds)
 from pe_rlhf.envs.blocks import BLOCK_TYPES
 from pe_rlhf.envs.scene import EGO_START, generate_scene
 
-ALL_SEEDS = TRAIN_SEEDS + TEST_SEEDS
+ALL_SEEDS = TRAIN_SEEDS + VALIDATION_SEEDS + TEST_SEEDS
 
 
 @pytest.fixture(scope="module")
@@ -49,11 +50,12 @@ def _route_s(route, lane_index, position) -> float:
 # -- splits ------------------------------------------------------------------------------
 
 
-def test_splits_are_50_and_50_and_disjoint():
-    assert len(TRAIN_SEEDS) == 50 and len(set(TRAIN_SEEDS)) == 50
-    assert len(TEST_SEEDS) == 50 and len(set(TEST_SEEDS)) == 50
-    assert not set(TRAIN_SEEDS) & set(TEST_SEEDS)
+def test_splits_are_50_scenes_each_and_pairwise_disjoint():
+    splits = (TRAIN_SEEDS, VALIDATION_SEEDS, TEST_SEEDS)
+    assert all(len(s) == 50 and len(set(s)) == 50 for s in splits)
+    assert len(set(TRAIN_SEEDS) | set(VALIDATION_SEEDS) | set(TEST_SEEDS)) == 150
     assert scene_seeds("train") == TRAIN_SEEDS
+    assert scene_seeds("validation") == VALIDATION_SEEDS
     assert scene_seeds("test") == TEST_SEEDS
     with pytest.raises(ValueError, match="dev"):
         scene_seeds("dev")
@@ -182,7 +184,7 @@ def test_different_seeds_give_different_scenes(scenes):
         scenes[i].route.length != scenes[j].route.length or scenes[i].blocks != scenes[j].blocks for i, j in pairs
     )
     assert differ >= 0.95 * len(pairs)
-    assert len({round(scenes[s].route.length, 6) for s in ALL_SEEDS}) >= 90
+    assert len({round(scenes[s].route.length, 6) for s in ALL_SEEDS}) >= 135
 
 
 # -- geometry ------------------------------------------------------------------------------------

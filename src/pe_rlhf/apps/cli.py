@@ -21,6 +21,7 @@ from typing import Any, Callable, Sequence
 from pe_rlhf import __version__
 from pe_rlhf.errors import OneLineErrorParser, debug_requested, fail
 from pe_rlhf.envs import DrivingConfig, parse_seeds, scene_seeds
+from pe_rlhf.envs.splits import SPLITS
 
 AddParser = Callable[[argparse._SubParsersAction], argparse.ArgumentParser]
 
@@ -128,7 +129,7 @@ def add_evaluate_parser(subparsers: argparse._SubParsersAction) -> argparse.Argu
                    "random, ...)")
     p.add_argument("--checkpoint", metavar="RUN_DIR", help="evaluate the agent trained in this run folder, "
                    "PE-RLHF/HACO/HAIM-DRL or baseline (its actor.pt, or its newest checkpoint); replaces --policy")
-    p.add_argument("--split", default="test", choices=("train", "test"), help="scene split (default: test)")
+    p.add_argument("--split", default="test", choices=tuple(SPLITS), help="scene split (default: test)")
     p.add_argument("--seeds", help="scene seeds 'A-B' or 'a,b,c'; replaces --split")
     p.add_argument("--episodes", type=int, help="evaluate the first N seeds (default: all)")
     p.add_argument("--seed", type=int, default=0, help="policy seed (random policies)")
@@ -247,7 +248,7 @@ def add_demo_parser(subparsers: argparse._SubParsersAction) -> argparse.Argument
                        description="Let a mentor drive alone; each finished episode is saved immediately. "
                        "Re-running on the same --out continues the dataset.")
     r.add_argument("--mentor", required=True, metavar="NAME", help="professional, amateur, adversarial or human")
-    r.add_argument("--split", default="train", choices=("train", "test"), help="scene split to cycle through")
+    r.add_argument("--split", default="train", choices=tuple(SPLITS), help="scene split to cycle through")
     r.add_argument("--seeds", help="scene seeds 'A-B' or 'a,b,c'; replaces --split")
     r.add_argument("--steps", type=int, required=True, help="env steps to record (whole episodes: may overshoot)")
     r.add_argument("--exact", action="store_true", help="stop at exactly --steps, cutting the last episode")

@@ -5,7 +5,7 @@ from __future__ import annotations
 from pe_rlhf import ENV_ID, MAX_EPISODE_STEPS, register_env
 from pe_rlhf.envs.action import action_to_controls, controls_to_action
 from pe_rlhf.envs.config import DrivingConfig
-from pe_rlhf.envs.splits import TEST_SEEDS, TRAIN_SEEDS, parse_seeds, scene_seeds
+from pe_rlhf.envs.splits import TEST_SEEDS, TRAIN_SEEDS, VALIDATION_SEEDS, parse_seeds, scene_seeds
 
 
 def register() -> None:
@@ -36,6 +36,7 @@ __all__ = [
     "MAX_EPISODE_STEPS",
     "DrivingConfig",
     "TEST_SEEDS",
+    "VALIDATION_SEEDS",
     "TRAIN_SEEDS",
     "action_to_controls",
     "controls_to_action",

@@ -6,6 +6,7 @@ from dataclasses import asdict, dataclass, fields
 from typing import Any
 
 from pe_rlhf.envs.blocks import BLOCK_TYPES
+from pe_rlhf.envs.splits import SPLITS
 
 
 @dataclass(frozen=True)
@@ -70,8 +71,8 @@ class DrivingConfig:
             bad("active_radius", "must exceed lidar_range so every perceived vehicle is simulated")
         if not isinstance(self.lane_features, bool):
             bad("lane_features", "must be true or false")
-        if self.split not in (None, "train", "test"):
-            bad("split", "must be 'train', 'test' or None")
+        if self.split is not None and self.split not in SPLITS:
+            bad("split", f"must be one of {list(SPLITS)} or None")
 
     @classmethod
     def from_dict(cls, values: dict[str, Any] | None) -> DrivingConfig:

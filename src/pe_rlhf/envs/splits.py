@@ -1,14 +1,19 @@
-"""Fixed scene-seed splits: 50 training scenes and 50 disjoint held-out test scenes."""
+"""Fixed scene-seed splits: 50 training scenes, 50 validation scenes and 50 test scenes, pairwise disjoint.
+
+Agents train on ``train``; ``validation`` holds scenes no agent trains on and no final table reports, for choosing
+settings on scenes the agent has not seen; ``test`` is for final evaluations only.
+"""
 
 from __future__ import annotations
 
 TRAIN_SEEDS = tuple(range(0, 50))
+VALIDATION_SEEDS = tuple(range(500, 550))
 TEST_SEEDS = tuple(range(1000, 1050))
-SPLITS = {"train": TRAIN_SEEDS, "test": TEST_SEEDS}
+SPLITS = {"train": TRAIN_SEEDS, "validation": VALIDATION_SEEDS, "test": TEST_SEEDS}
 
 
 def scene_seeds(split: str) -> tuple[int, ...]:
-    """The scene seeds of ``split`` ('train' or 'test')."""
+    """The scene seeds of ``split`` ('train', 'validation' or 'test')."""
     if split not in SPLITS:
         raise ValueError(f"unknown split {split!r}; allowed: {sorted(SPLITS)}")
     return SPLITS[split]

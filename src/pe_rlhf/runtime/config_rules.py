@@ -16,10 +16,12 @@ from typing import Any
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
+from pe_rlhf.envs.splits import SPLITS as SCENE_SPLITS
+
 # The logger group's backends (pe_rlhf.runtime.metrics_logger.MetricsLogger); csv writes metrics.csv, which the run's
 # plots, --resume (it is cut back to the checkpoint) and the summaries (pe-rlhf compare, a sweep's plots) read.
 LOGGER_BACKENDS = ("csv", "wandb", "tensorboard", "mlflow")
-SPLITS = ("train", "test")
+SPLITS = tuple(SCENE_SPLITS)
 IMPORT_PATH = re.compile(r"^[A-Za-z_]\w*(\.[A-Za-z_]\w*)*:[A-Za-z_]\w*$")
 
 

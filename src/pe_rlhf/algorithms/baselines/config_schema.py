@@ -84,7 +84,7 @@ class EvalConfig:
 
     every_frames: int = knob(100_000, rule_int(0))  # 0: only the final evaluation
     episodes: int = knob(50, rule_int(1))  # the first N scenes of the split (the test split has 50)
-    split: str = knob("test", rule_choice(*SPLITS))  # train | test
+    split: str = knob("test", rule_choice(*SPLITS))  # train | validation | test
 
 
 @dataclass

@@ -249,7 +249,7 @@ DISTURBANCES: dict[bool, type] = {False: DisturbanceOff, True: DisturbanceConfig
 class EvalConfig:
     every_frames: int = knob(5000, rule_int(0))  # 0: no periodic evaluation
     episodes: int = knob(10, rule_int(1))
-    split: str = knob("test", rule_choice(*SPLITS))  # train | test
+    split: str = knob("test", rule_choice(*SPLITS))  # train | validation | test
     video: bool = knob(True, rule_bool)
 
 
