@@ -213,6 +213,9 @@ class ProxyValueLossConfig(LossCommon):
     # takeover_rows: the proxy labels on takeover rows | batch: PVP's released code (over the whole batch, times the
     # takeover share, so agent rows are pulled to 0; TD weighted 0.5)
     proxy_reduction: str = knob("takeover_rows", rule_choice(*PROXY_REDUCTIONS))
+    # false: on takeover rows where physics was executed only the agent's proposal is labelled (-B), physics' action
+    # gets TD alone (its braking is a fallback, not a demonstration)
+    label_physics_action: bool = knob(True, rule_bool)
 
 
 # loss.objective -> its group's settings
