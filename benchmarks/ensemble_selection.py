@@ -144,7 +144,8 @@ def measure(mentors: list[str], scenes: list[int], split: str, value: str, epsil
             imminent_failure: float | None = None, one_lane: bool = False,
             persistence: list[str] = ("off",), references: list[str] = ("physics",),
             strict: list[bool] = (False,), progress_margins: list[float | None] = (None,), save=None,
-            floor: bool = True, road_users: str | None = None, done: list[dict] = ()) -> list[dict]:
+            floor: bool = True, road_users: str | None = None, done: list[dict] = (),
+            latch_release_speeds: list[float | None] = (None,)) -> list[dict]:
     """Every row (see the module docstring) for every mentor, IDM-MOBIL alone once (``floor=False``: not, it is
     measured apart). ``save(results)`` is called after each row (a long run keeps what it measured); rows of
     ``done`` (a saved run's, matched by mentor and label) are kept, not measured again."""
@@ -167,12 +168,13 @@ def measure(mentors: list[str], scenes: list[int], split: str, value: str, epsil
         add(mentor, "as-is", {}, lambda: drive(mentor, scenes, split, world=world, progress=f"{mentor} as-is"))
         for eps in epsilons:
             for margin in switch_margins:
-                for persist, reference, st, pm in [(p, r, t, m) for p in persistence for r in references
-                                                   for t in strict for m in progress_margins]:
+                for persist, reference, st, pm, release in [
+                        (p, r, t, m, v) for p in persistence for r in references for t in strict
+                        for m in progress_margins for v in latch_release_speeds]:
                     selector = HybridActionSelector(ensemble, eps, variance_threshold, switch_margin=margin,
                                                     veto_patience=veto_patience, imminent_failure=imminent_failure,
                                                     persistence=persist, reference=reference, strict_in_danger=st,
-                                                    progress_margin=pm)
+                                                    progress_margin=pm, latch_release_speed=release)
                     label = f"hybrid eps={eps:g} margin={'none' if margin is None else f'{margin:g}'}"
                     if veto_patience > 1:
                         label += f" patience={veto_patience} imminent={imminent_failure}"
@@ -184,8 +186,11 @@ def measure(mentors: list[str], scenes: list[int], split: str, value: str, epsil
                         label += " strict"
                     if pm is not None:
                         label += f" progress={pm:g}"
+                    if release is not None:
+                        label += f" release={release:g}"
                     add(mentor, label, {"epsilon_select": eps, "switch_margin": margin, "persistence": persist,
-                                        "reference": reference, "strict_in_danger": st, "progress_margin": pm},
+                                        "reference": reference, "strict_in_danger": st, "progress_margin": pm,
+                                        "latch_release_speed": release},
                         lambda: drive(mentor, scenes, split, selector, world=world, progress=f"{mentor} {label}"))
     return list(results)
 
@@ -284,7 +289,7 @@ def main(argv=None) -> list[dict]:
     parser.add_argument("--mentors", nargs="+", default=["professional", "adversarial"])
     parser.add_argument("--split", choices=list(SPLITS), default="train")
     parser.add_argument("--scenes", default="0-19",
-                        help="a range of the split's scene seeds (train 0-..., test 1000-...)")
+                        help="a range of the split's scene seeds (train 0-..., validation 500-..., test 1000-...)")
     parser.add_argument("--value", default="expert", help="selector.value: expert | expert:PATH | forecast")
     parser.add_argument("--epsilons", type=float, nargs="+", default=[0.5, 1.5])
     parser.add_argument("--switch-margins", type=margin_arg, nargs="+", default=[None], help="none, a number, or inf")
@@ -306,6 +311,9 @@ def main(argv=None) -> list[dict]:
     parser.add_argument("--progress-margins", type=margin_arg, nargs="+", default=[None],
                         help="selector progress_margin [m] with --value forecast (none: safety alone): the mentor's "
                         "action held 1 s must make physics' progress less this, where physics is safe")
+    parser.add_argument("--latch-release-speeds", type=margin_arg, nargs="+", default=[None],
+                        help="selector latch_release_speed [m/s] with --persistence latch (none: off): at most this "
+                        "fast, a held veto no longer holds")
     parser.add_argument("--hold-one-lane", action="store_true", help="selector.forecast_hold_one_lane: the hold "
                         "ends once the car has moved one lane width sideways")
     parser.add_argument("--forecast-recovery", choices=list(RECOVERIES), default=None,
@@ -352,7 +360,8 @@ def main(argv=None) -> list[dict]:
                       args.variance_threshold, args.forecast_hold, args.forecast_recovery,
                           args.veto_patience, args.imminent_failure, args.hold_one_lane, args.persistence,
                           args.references, [s == "on" for s in args.strict], args.progress_margins, save,
-                          floor=not args.no_floor, road_users=args.forecast_road_users, done=done)
+                          floor=not args.no_floor, road_users=args.forecast_road_users, done=done,
+                          latch_release_speeds=args.latch_release_speeds)
     print(format_table(results))
     print(f"{len(scenes)} {args.split} scenes ({scenes[0]}-{scenes[-1]}), value {args.value}, "
           f"{time.time() - t:.0f} s", flush=True)

@@ -95,6 +95,9 @@ def test_value_source_shape_and_non_finite_actions():
     with pytest.raises(ValueError, match="env="):
         value.values(obs, acts)
     assert value.state_dict() == {}  # nothing to checkpoint or push to workers
+    assert value.speed(env=env).tolist() == pytest.approx([15.0])  # what latch_release_speed compares
+    with pytest.raises(ValueError, match="env="):
+        value.speed()
 
 
 def test_the_selector_executes_the_mentor_unless_its_action_fails_sooner():

@@ -341,6 +341,46 @@ def test_a_safe_action_that_makes_too_little_progress_is_vetoed_with_a_progress_
     assert not bool(chosen) and streak.tolist() == [1]  # a progress veto is a veto: the latch holds it
 
 
+class StandingForecast(TableForecast):
+    """:class:`TableForecast` with the ego's speed [m/s] set by the test."""
+
+    ego_speed = 0.0
+
+    def speed(self):
+        return torch.tensor([self.ego_speed])
+
+
+def test_a_latch_releases_where_the_car_stands_with_a_latch_release_speed():
+    """The professional's deadlock: a full-lock turn around an obstacle at walking pace, safe held 1 s (3.0) but
+    leaving the road when repeated for the whole horizon (2.0), once vetoed (1.0) is held for ever. With a release
+    speed of 0.5 m/s, a standing car judges the step alone and the mentor drives again; while the car still rolls
+    the latch holds."""
+    forecast = StandingForecast({3.0: 2.0, 1.0: 2.0})
+    obs, phy = torch.zeros(1), torch.tensor([3.0, 0.0])
+    held = HybridActionSelector(forecast, -0.5, persistence="latch")
+    released = HybridActionSelector(forecast, -0.5, persistence="latch", latch_release_speed=0.5)
+    for sel in (held, released):
+        _, chosen, streak, _, _ = sel.judge(obs, torch.tensor([1.0, 0.0]), phy)
+        assert not bool(chosen) and streak.tolist() == [1]  # the veto
+    forecast.ego_speed = 2.0  # braking, still rolling: both hold
+    for sel in (held, released):
+        _, chosen, streak, _, _ = sel.judge(obs, torch.tensor([3.0, 0.0]), phy, streak=torch.tensor([1]))
+        assert not bool(chosen) and streak.tolist() == [1]
+    forecast.ego_speed = 0.0  # standing
+    assert not bool(held.judge(obs, torch.tensor([3.0, 0.0]), phy, streak=torch.tensor([1]))[1])
+    _, chosen, streak, _, _ = released.judge(obs, torch.tensor([3.0, 0.0]), phy, streak=torch.tensor([1]))
+    assert bool(chosen) and streak.tolist() == [0]
+    _, chosen, streak, _, _ = released.judge(obs, torch.tensor([1.0, 0.0]), phy, streak=torch.tensor([1]))
+    assert not bool(chosen) and streak.tolist() == [1]  # standing, the one-step test still vetoes
+    for kwargs, match in (({"persistence": "always"}, "needs persistence='latch'"), ({}, "needs persistence"),
+                          ({"persistence": "latch", "q": TableForecast({})}, "value source with speed")):
+        source = kwargs.pop("q", forecast)
+        with pytest.raises(ValueError, match=match):
+            HybridActionSelector(source, -0.5, latch_release_speed=0.5, **kwargs)
+    with pytest.raises(ValueError, match="latch_release_speed=-1"):
+        HybridActionSelector(forecast, -0.5, persistence="latch", latch_release_speed=-1)
+
+
 @pytest.mark.parametrize("margin", [-1.0, float("nan"), float("inf"), True])
 def test_invalid_progress_margin_raises(margin):
     with pytest.raises(ValueError, match="progress_margin"):

@@ -352,6 +352,12 @@ class SafetyForecastValue(torch.nn.Module):
             out.append(float(sim.route.project(state[0], start[0])[1] - start[1]))
         return torch.tensor([out], dtype=torch.float32)
 
+    def speed(self, env=None) -> torch.Tensor:
+        """``(1,)`` float32: the ego's speed [m/s] now (``HybridActionSelector(latch_release_speed=...)``)."""
+        if env is None:
+            raise ValueError("SafetyForecastValue.speed needs env= (the simulator to read)")
+        return torch.tensor([float(getattr(env, "unwrapped", env).vehicle.speed)], dtype=torch.float32)
+
     def recovery_value(self, env=None) -> torch.Tensor:
         """``(1, 1)``: seconds until a failure when the recovery starts now (no hold; the action is not read):
         what any fallback that brakes at once can reach (``HybridActionSelector(reference=...)``)."""

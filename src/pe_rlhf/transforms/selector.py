@@ -64,6 +64,10 @@ class HybridActionSelector(TensorDictModuleBase):
     ``"always"``: every step's mentor action must pass that repeated check as well. A driver that repeats a
     dangerous action passes a one-step check at every step while the sequence ends in a crash; the latch is
     what stops it (``benchmarks/ensemble_selection.py``, docs/guide/shield.md).
+    ``latch_release_speed`` (None by default) [m/s], with ``"latch"`` and a value source with ``speed(env=)``: where
+    the car is at most this fast, a held veto no longer holds and the step is judged as any other. A sharp manoeuvre
+    repeated for the whole horizon always leaves the road: the professional, steering full lock around an obstacle
+    at walking pace, was vetoed once and then held behind it, standing, for the rest of the episode.
 
     ``reference`` ("physics" by default) is what the mentor is compared with: physics' action's value, or
     (``"physics_or_recovery"``, a value source with ``recovery_value(env=)``) the better of it and the value
@@ -99,6 +103,7 @@ class HybridActionSelector(TensorDictModuleBase):
         reference: str = "physics",
         strict_in_danger: bool = False,
         progress_margin: float | None = None,
+        latch_release_speed: float | None = None,
         observation_key: NestedKey = "observation",
         mentor_action_key: NestedKey = "mentor_action",
         physics_action_key: NestedKey = "physics_action",
@@ -150,6 +155,14 @@ class HybridActionSelector(TensorDictModuleBase):
             raise ValueError(f"progress_margin needs a value source with progress (the physics forecast); "
                              f"{type(q_ensemble).__name__} has none")
         self.progress_margin = None if progress_margin is None else float(progress_margin)
+        if latch_release_speed is not None and (isinstance(latch_release_speed, bool)
+                                                or not isinstance(latch_release_speed, (int, float))
+                                                or not math.isfinite(latch_release_speed) or latch_release_speed < 0):
+            raise ValueError(f"latch_release_speed={latch_release_speed!r} must be a finite speed [m/s] >= 0, or None")
+        if latch_release_speed is not None and (persistence != "latch" or not hasattr(q_ensemble, "speed")):
+            raise ValueError("latch_release_speed needs persistence='latch' and a value source with speed (the physics "
+                             f"forecast); got persistence={persistence!r}, {type(q_ensemble).__name__}")
+        self.latch_release_speed = None if latch_release_speed is None else float(latch_release_speed)
         self.veto_patience = veto_patience
         self.imminent_failure = None if imminent_failure is None else float(imminent_failure)
         self._veto_streak: torch.Tensor | None = None
@@ -286,6 +299,9 @@ class HybridActionSelector(TensorDictModuleBase):
         at every step (``always``) or while a veto holds (``latch``: ``streak`` 1); returns the choice and the
         new latch (1 where physics drives)."""
         need = chosen if self.persistence == "always" else chosen & (streak > 0)
+        if self.latch_release_speed is not None and need.any():  # a standing car: the step is judged alone
+            kwargs = {"env": env} if getattr(self.q_ensemble, "needs_env", False) else {}
+            need = need & (self.q_ensemble.speed(**kwargs).reshape(-1).to(need.device) > self.latch_release_speed)
         if need.any():
             n = len(acts) // 2
             kwargs = {"env": env} if getattr(self.q_ensemble, "needs_env", False) else {}
