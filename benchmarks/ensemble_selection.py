@@ -131,10 +131,11 @@ def drive(mentor: str | None, scenes: list[int], split: str = "train", selector:
 
 
 def forecast_value(hold: float = 1.0, recovery: str | None = None, one_lane: bool = False,
-                   road_users: str | None = None) -> SafetyForecastValue:
-    """The forecast value source held ``hold`` seconds, with ``recovery`` and ``road_users`` (None: the config's
-    defaults, as ``selector.value=forecast`` builds it)."""
-    options = {k: v for k, v in (("recovery", recovery), ("road_users", road_users)) if v is not None}
+                   road_users: str | None = None, horizon: float | None = None) -> SafetyForecastValue:
+    """The forecast value source held ``hold`` seconds, with ``recovery``, ``road_users`` and ``horizon`` (None: the
+    config's defaults, as ``selector.value=forecast`` builds it)."""
+    options = {k: v for k, v in (("recovery", recovery), ("road_users", road_users), ("horizon", horizon))
+               if v is not None}
     return SafetyForecastValue(SafetyForecastConfig(hold=hold, hold_one_lane=one_lane, **options))
 
 
@@ -145,7 +146,7 @@ def measure(mentors: list[str], scenes: list[int], split: str, value: str, epsil
             persistence: list[str] = ("off",), references: list[str] = ("physics",),
             strict: list[bool] = (False,), progress_margins: list[float | None] = (None,), save=None,
             floor: bool = True, road_users: str | None = None, done: list[dict] = (),
-            latch_release_speeds: list[float | None] = (None,)) -> list[dict]:
+            latch_release_speeds: list[float | None] = (None,), forecast_horizon: float | None = None) -> list[dict]:
     """Every row (see the module docstring) for every mentor, IDM-MOBIL alone once (``floor=False``: not, it is
     measured apart). ``save(results)`` is called after each row (a long run keeps what it measured); rows of
     ``done`` (a saved run's, matched by mentor and label) are kept, not measured again."""
@@ -154,7 +155,8 @@ def measure(mentors: list[str], scenes: list[int], split: str, value: str, epsil
     if kind == "warmup":
         raise SystemExit("--value: a warm-up ensemble exists only inside a run; use expert, expert:PATH or "
                          "forecast")
-    ensemble = forecast_value(forecast_hold, forecast_recovery, one_lane, road_users) if kind == "forecast" \
+    ensemble = forecast_value(forecast_hold, forecast_recovery, one_lane, road_users, forecast_horizon) \
+        if kind == "forecast" \
         else load_value_expert(path, world_obs_dim(world))
     results = _Rows(save)
     kept = {(r["mentor"], r["row"]): r for r in done if [e["scene"] for e in r.get("per_episode", [])] == scenes}
@@ -188,6 +190,8 @@ def measure(mentors: list[str], scenes: list[int], split: str, value: str, epsil
                         label += f" progress={pm:g}"
                     if release is not None:
                         label += f" release={release:g}"
+                    if forecast_horizon is not None:
+                        label += f" horizon={forecast_horizon:g}"
                     add(mentor, label, {"epsilon_select": eps, "switch_margin": margin, "persistence": persist,
                                         "reference": reference, "strict_in_danger": st, "progress_margin": pm,
                                         "latch_release_speed": release},
@@ -314,6 +318,8 @@ def main(argv=None) -> list[dict]:
     parser.add_argument("--latch-release-speeds", type=margin_arg, nargs="+", default=[None],
                         help="selector latch_release_speed [m/s] with --persistence latch (none: off): at most this "
                         "fast, a held veto no longer holds")
+    parser.add_argument("--forecast-horizon", type=float, default=None,
+                        help="the forecast's horizon [s] with --value forecast (default: SafetyForecastConfig's)")
     parser.add_argument("--hold-one-lane", action="store_true", help="selector.forecast_hold_one_lane: the hold "
                         "ends once the car has moved one lane width sideways")
     parser.add_argument("--forecast-recovery", choices=list(RECOVERIES), default=None,
@@ -361,7 +367,7 @@ def main(argv=None) -> list[dict]:
                           args.veto_patience, args.imminent_failure, args.hold_one_lane, args.persistence,
                           args.references, [s == "on" for s in args.strict], args.progress_margins, save,
                           floor=not args.no_floor, road_users=args.forecast_road_users, done=done,
-                          latch_release_speeds=args.latch_release_speeds)
+                          latch_release_speeds=args.latch_release_speeds, forecast_horizon=args.forecast_horizon)
     print(format_table(results))
     print(f"{len(scenes)} {args.split} scenes ({scenes[0]}-{scenes[-1]}), value {args.value}, "
           f"{time.time() - t:.0f} s", flush=True)

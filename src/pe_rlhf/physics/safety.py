@@ -49,7 +49,8 @@ from pe_rlhf.physics.followers import Followers, is_lane_follower
 from pe_rlhf.physics.road_users import MODELS as ROAD_USER_MODELS
 from pe_rlhf.physics.road_users import RoadUsers
 
-NEAR = 60.0  # [m] road users farther than this cannot be reached within a forecast
+NEAR = 60.0  # [m] road users nearer than this are always forecast
+BODY_MARGIN = 10.0  # [m] more than the two bodies' half-lengths together
 RECOVERY_STEERING_GAIN = 1.5  # [rad of wheel angle per rad of heading error] while recovering
 # The recoveries after the hold. Full braking: "route" steers back along the route's heading (one recovery);
 # "route_or_straight" also tries the wheels straight and keeps the better (steering back towards the route can
@@ -97,15 +98,19 @@ class SafetyForecastConfig:
             raise ValueError(f"SafetyForecastConfig dt={self.dt!r} and horizon={self.horizon!r} must be > 0")
 
 
-def _others(env) -> list:
-    """The road users whose motion does not depend on the ego (:class:`RoadUsers`): static objects near the ego, and
-    vehicles near it, ahead of it or behind it without a lane-following IDM (those with one: :class:`Followers`)."""
+def _others(env, horizon: float) -> list:
+    """The road users whose motion does not depend on the ego (:class:`RoadUsers`): static objects and vehicles the
+    ego can reach within ``horizon`` seconds, ahead of it or behind it without a lane-following IDM (those with one:
+    :class:`Followers`). Reach: ``NEAR``, or farther where the ego at full throttle and the road user at its speed
+    close more than that (at 30 m/s a standing obstacle 75 m ahead is one braking can still avoid)."""
     ego = env.vehicle
     candidates = [obj for obj in list(env.road.vehicles) + list(env.road.objects) if obj is not ego]
     if not candidates:
         return []
     rel = np.array([obj.position for obj in candidates], float) - np.asarray(ego.position, float)
-    near = np.hypot(rel[:, 0], rel[:, 1]) <= NEAR
+    speeds = np.array([float(getattr(obj, "speed", 0.0)) for obj in candidates])
+    ego_reach = (float(ego.speed) + MAX_ACCELERATION * horizon) * horizon
+    near = np.hypot(rel[:, 0], rel[:, 1]) <= np.maximum(NEAR, ego_reach + np.abs(speeds) * horizon + BODY_MARGIN)
     behind = rel @ np.array([math.cos(ego.heading), math.sin(ego.heading)]) < 0
     # a driver behind brakes for us: Followers forecasts it; a road user behind without an IDM on a lane does not
     return [obj for obj, n, b in zip(candidates, near, behind)
@@ -118,7 +123,7 @@ _ROAD_USERS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # env -> (
 def _road_users(env, config: SafetyForecastConfig, steps: int, substeps: int) -> RoadUsers:
     """:class:`RoadUsers` of :func:`_others`, built once while their state (and the ego's, which selects them) is
     unchanged: the forecasts of one decision (each candidate, the recovery, the repeated action) share it."""
-    objects = _others(env)
+    objects = _others(env, config.horizon)
     key = (config.dt, steps, substeps, config.road_users, tuple(
         (id(o), float(o.position[0]), float(o.position[1]), float(o.heading), float(getattr(o, "speed", 0.0)),
          getattr(o, "target_lane_index", None), tuple(getattr(o, "route", None) or ())) for o in objects))
