@@ -49,20 +49,25 @@ from pe_rlhf.transforms.keys import SHIELD_OUT_KEYS
 from pe_rlhf.transforms.selector import HybridActionSelector
 
 DEFAULT_THRESHOLD = 0.5  # [s] the selector's -epsilon_select (docs/results/claims: the forecast's calibration)
+# [m/s] with persistence="latch": a standing car's step is judged alone (docs/experiments/shield-calibration.md: the
+# professional steering around an obstacle at walking pace was held behind it, standing, by the latch)
+LATCH_RELEASE_SPEED = 0.5
 
 
 def shield_selector(threshold: float = DEFAULT_THRESHOLD, persistence: str = "latch",
                     forecast: SafetyForecastConfig | None = None, reference: str = "physics_or_recovery",
                     strict_in_danger: bool = True) -> HybridActionSelector:
     """The shield's rule: the hybrid selector over the physics forecast with ``epsilon_select = -threshold``,
-    ``persistence``, ``reference`` (the policy is compared with the better of physics' action and braking at
-    once, and the better one runs) and ``strict_in_danger`` (no slack where that fallback itself is forecast
-    to fail): :class:`~pe_rlhf.transforms.HybridActionSelector`."""
+    ``persistence`` (with ``"latch"``, released where the car stands: ``LATCH_RELEASE_SPEED``), ``reference`` (the
+    policy is compared with the better of physics' action and braking at once, and the better one runs) and
+    ``strict_in_danger`` (no slack where that fallback itself is forecast to fail):
+    :class:`~pe_rlhf.transforms.HybridActionSelector`."""
     if isinstance(threshold, bool) or not isinstance(threshold, (int, float)) or not np.isfinite(threshold) \
             or threshold < 0:
         raise ValueError(f"SafetyShield threshold={threshold!r} must be a finite number of seconds >= 0")
     return HybridActionSelector(SafetyForecastValue(forecast), -float(threshold), persistence=persistence,
-                                reference=reference, strict_in_danger=strict_in_danger)
+                                reference=reference, strict_in_danger=strict_in_danger,
+                                latch_release_speed=LATCH_RELEASE_SPEED if persistence == "latch" else None)
 
 
 @dataclass(frozen=True)

@@ -47,6 +47,7 @@ from pe_rlhf.algorithms.proxy_q.model_builders import build_actor, build_loss, u
 from pe_rlhf.algorithms.proxy_q.takeover_replay import TakeoverBalancedReplayBuffer
 from pe_rlhf.algorithms.proxy_q.value_expert import load_value_expert, parse_value_source
 from pe_rlhf.transforms import (
+    LATCH_RELEASE_SPEED,
     HybridActionSelector,
     InterventionTransform,
     RealtimePacing,
@@ -146,9 +147,10 @@ def epsilon_select(cfg) -> float:
 # 42). A veto holds until the mentor's action repeated is no worse (latch); the mentor is compared with the better of
 # physics' action and braking at once, and the better one runs (physics_or_recovery); no slack where that fallback
 # itself fails (strict); where physics is safe, the mentor's action must make physics' progress less 1 m (a safe
-# action can stop the car).
+# action can stop the car); a standing car's step is judged alone (the latch held the professional, steering around
+# an obstacle at walking pace, behind it for the rest of the episode).
 FORECAST_RULE = {"persistence": "latch", "reference": "physics_or_recovery", "strict_in_danger": True,
-                 "progress_margin": 1.0}
+                 "progress_margin": 1.0, "latch_release_speed": LATCH_RELEASE_SPEED}
 
 
 def build_selector(cfg, value_source: ValueSource) -> HybridActionSelector:
