@@ -222,7 +222,7 @@ def test_invalid_pacing_and_async_settings_name_the_field(overrides, field):
 
 @pytest.mark.timing
 def test_recipe_with_async_updates_and_pacing_logs_frame_times(tmp_path):
-    final = load_pe_rlhf_recipe().main(["profile=smoke", "optim.async_updates=true", "collector.realtime_hz=50",
+    final = load_pe_rlhf_recipe().main(["profile=smoke", "optim.async_updates=true", "collector.realtime_hz=25",
                                  "eval.every_frames=0", "checkpoint.every_frames=150", "--out", str(tmp_path)])
     with open(tmp_path / "metrics.csv") as f:
         rows = list(csv.DictReader(f))
@@ -233,7 +233,9 @@ def test_recipe_with_async_updates_and_pacing_logs_frame_times(tmp_path):
         for key, value in row.items():
             if value != "":
                 assert math.isfinite(float(value)), key
-    assert abs(float(rows[-1]["time/frame_ms_mean"]) - 20.0) < 5.0  # 50 Hz
+    # 25 Hz, 2.5 times a person's 10: at 50 Hz a frame's work (env step, physics, the forecast during a takeover)
+    # sometimes outran its 20 ms on 2 CI cores (26.9 ms mean once in five runs), so the pacing was not what was tested
+    assert abs(float(rows[-1]["time/frame_ms_mean"]) - 40.0) < 5.0  # 25 Hz
     assert any(r.get("loss/qvalue") for r in rows)
     assert final["training"]["updates"] == 30  # 5 per 50 frames from learning_starts on, as the sync loop
     assert (tmp_path / "checkpoints").exists()
