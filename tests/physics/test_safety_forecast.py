@@ -19,6 +19,7 @@ from _scenes import add_car, add_obstacle, place_ego, straight_env
 THROTTLE = np.array([0.0, 1.0], np.float32)
 BRAKE = np.array([0.0, -1.0], np.float32)
 COAST = np.array([0.0, 0.0], np.float32)
+HORIZON = SafetyForecastConfig().horizon  # [s] the value of an action that fails within the forecast: less
 
 
 def at_speed(speed: float, obstacle_ahead: float | None = None):
@@ -44,7 +45,7 @@ def hold_to_the_end(env, action, max_steps: int | None = None) -> tuple[int, dic
 def test_nothing_in_the_way_is_worth_the_whole_horizon():
     env = at_speed(15.0)
     for action in (COAST, THROTTLE, BRAKE):
-        assert time_to_failure(env, action) == pytest.approx(3.0)
+        assert time_to_failure(env, action) == pytest.approx(HORIZON)
 
 
 def test_steering_hard_at_speed_leaves_the_road_within_the_hold():
@@ -53,15 +54,15 @@ def test_steering_hard_at_speed_leaves_the_road_within_the_hold():
         ttf = time_to_failure(env, np.array([side, 0.0], np.float32))
         assert 0.0 < ttf <= 1.0 + 1e-9  # held for 1 s it is off a 3-lane road before any recovery starts
     gentle = time_to_failure(env, np.array([0.05, 0.0], np.float32))
-    assert gentle == pytest.approx(3.0)  # a lane-keeping correction, then the recovery, stays on the road
+    assert gentle == pytest.approx(HORIZON)  # a lane-keeping correction, then the recovery, stays on the road
 
 
 def test_the_forecast_tells_braking_in_time_from_driving_on():
     env = at_speed(15.0, obstacle_ahead=40.0)  # stopping from 15 m/s takes 18.75 m at 6 m/s^2
-    assert time_to_failure(env, BRAKE) == pytest.approx(3.0)
-    assert time_to_failure(env, THROTTLE) < 3.0  # 1 s of full throttle first: too late to stop
+    assert time_to_failure(env, BRAKE) == pytest.approx(HORIZON)
+    assert time_to_failure(env, THROTTLE) < HORIZON  # 1 s of full throttle first: too late to stop
     short = SafetyForecastConfig(hold=0.0)
-    assert time_to_failure(env, THROTTLE, short) == pytest.approx(3.0)  # no hold: it is the recovery only
+    assert time_to_failure(env, THROTTLE, short) == pytest.approx(HORIZON)  # no hold: it is the recovery only
 
 
 def test_the_forecast_crash_time_matches_the_simulator():
@@ -89,7 +90,7 @@ def test_value_source_shape_and_non_finite_actions():
     acts = torch.tensor(np.stack([BRAKE, THROTTLE]))
     q = value.values(obs, acts, env=env)
     assert q.shape == (1, 2) and q.dtype == torch.float32
-    assert q[0, 0] == pytest.approx(3.0) and q[0, 1] < 3.0
+    assert q[0, 0] == pytest.approx(HORIZON) and q[0, 1] < HORIZON
     nan = value.values(obs, torch.tensor([[float("nan"), 0.0], [0.0, 0.0]]), env=env)
     assert nan[0, 0] == 0.0
     with pytest.raises(ValueError, match="env="):
@@ -145,11 +146,11 @@ def test_a_hold_of_one_lane_lets_a_lane_change_through():
     steer = np.array([0.6, 0.0], np.float32)
     assert time_to_failure(env, steer) < 1.0 + 1e-9
     one_lane = SafetyForecastConfig(hold_one_lane=True, recovery="lanes")
-    assert time_to_failure(env, steer, one_lane) == pytest.approx(3.0)
-    assert time_to_failure(env, -steer, one_lane) == pytest.approx(3.0)  # either neighbour
+    assert time_to_failure(env, steer, one_lane) == pytest.approx(HORIZON)
+    assert time_to_failure(env, -steer, one_lane) == pytest.approx(HORIZON)  # either neighbour
     env.vehicle.position = env.vehicle.position + 4.0 * np.array([-np.sin(env.vehicle.heading),
                                                                     np.cos(env.vehicle.heading)])
-    assert time_to_failure(env, steer, one_lane) < 3.0  # from the outer lane, towards the edge
+    assert time_to_failure(env, steer, one_lane) < HORIZON  # from the outer lane, towards the edge
 
 
 def test_lane_recovery_is_never_worse_than_the_route_recovery_on_a_straight():
@@ -182,11 +183,11 @@ def test_braking_hard_in_front_of_a_fast_follower_fails_sooner_than_keeping_spee
     env = behind_a_follower(gap=12.0, follower_speed=20.0)
     braking = SafetyForecastConfig(recovery="route_or_straight")
     keep, brake = time_to_failure(env, COAST, braking), time_to_failure(env, BRAKE, braking)
-    assert keep == pytest.approx(3.0)
+    assert keep == pytest.approx(HORIZON)
     assert brake < keep - 1.0
-    assert time_to_failure(env, BRAKE) == pytest.approx(3.0)
+    assert time_to_failure(env, BRAKE) == pytest.approx(HORIZON)
     ignored = SafetyForecastConfig(followers=False, recovery="route_or_straight")
-    assert time_to_failure(env, BRAKE, ignored) == pytest.approx(3.0)  # the old forecast: braking looked safe
+    assert time_to_failure(env, BRAKE, ignored) == pytest.approx(HORIZON)  # the old forecast: braking looked safe
     steps, info = hold_to_the_end(env, BRAKE, max_steps=41)
     assert info["crash_vehicle"]
     assert brake == pytest.approx(steps * 0.1, abs=0.15)
@@ -197,7 +198,7 @@ def test_a_follower_with_room_to_stop_leaves_braking_safe():
     a follower brakes or passes, and full braking is safe over the horizon."""
     for gap, lane in ((45.0, 1), (12.0, 0)):
         env = behind_a_follower(gap=gap, follower_speed=15.0, lane=lane)
-        assert time_to_failure(env, BRAKE) == pytest.approx(3.0)
+        assert time_to_failure(env, BRAKE) == pytest.approx(HORIZON)
 
 
 def test_without_a_follower_the_forecast_is_unchanged():
@@ -350,7 +351,7 @@ def test_the_recovery_keeps_the_wheels_straight_where_steering_back_runs_into_a_
     best = SafetyForecastValue()  # recovery="route_or_straight"
     assert route.recovery_value(env=env).item() == pytest.approx(0.8)
     assert rollout(env, route)
-    assert best.recovery_value(env=env).item() == pytest.approx(3.0)
+    assert best.recovery_value(env=env).item() == pytest.approx(HORIZON)
     assert best.recovery_action(env=env).numpy() == pytest.approx([0.0, -1.0])
     assert not rollout(env, best)
     for action in (BRAKE, COAST):  # the candidates' forecasts: never worse than with the route recovery alone
@@ -388,7 +389,7 @@ def test_a_car_standing_in_a_crossing_cars_path_recovers_by_driving_on():
     assert 1.5 < braking.recovery_value(env=env).item() < 2.5
     steps, info = hold_to_the_end(pickle.loads(pickle.dumps(env)), BRAKE, max_steps=40)
     assert info["crash_vehicle"] and steps * 0.1 == pytest.approx(braking.recovery_value(env=env).item(), abs=0.15)
-    assert best.recovery_value(env=env).item() == pytest.approx(3.0)
+    assert best.recovery_value(env=env).item() == pytest.approx(HORIZON)
     assert best.recovery_action(env=env).numpy() == pytest.approx([0.0, 1.0], abs=0.05)
     start = env.vehicle.position.copy()
     for _ in range(40):  # the fallback executed at every step for 4 s: it drives on, then brakes once clear

@@ -15,6 +15,7 @@ from torchrl.envs.utils import check_env_specs
 from pe_rlhf.envs import DrivingConfig, make_env, make_gym_env
 from pe_rlhf.envs.torchrl_env import unwrap
 from pe_rlhf.mentors import ADVERSARY_NAMES, make_mentor
+from pe_rlhf.physics import SafetyForecastConfig
 from pe_rlhf.transforms import SafetyShield
 from pe_rlhf.transforms.keys import PHYSICS_TIME_TO_FAILURE, POLICY_TIME_TO_FAILURE, SHIELD_OVERRIDE
 from pe_rlhf.wrappers import SafetyShieldWrapper
@@ -63,7 +64,7 @@ def test_a_policy_keeping_its_lane_on_a_clear_road_is_never_overridden():
     place_ego(env, 60.0, lane=1, speed=12.0)
     flags, infos, _ = shielded_run(env, keep_lane, 150)
     assert not flags.any()
-    assert all(i[POLICY_TIME_TO_FAILURE] == pytest.approx(3.0) for i in infos)
+    assert all(i[POLICY_TIME_TO_FAILURE] == pytest.approx(SafetyForecastConfig().horizon) for i in infos)
 
 
 def test_the_override_ends_when_the_danger_has_passed():
@@ -75,7 +76,8 @@ def test_the_override_ends_when_the_danger_has_passed():
     flags, infos, _ = shielded_run(env, lambda sim: np.array([0.0, 1.0], np.float32), 60)
     assert flags[0] and infos[0][POLICY_TIME_TO_FAILURE] < 2.0
     handed_back = int(np.argmin(flags))
-    assert 0 < handed_back < 30 and env.progress > progress_of(env, car)  # passed, and back within 3 s
+    # passed, and back within 4 s: the latch waits for full throttle, repeated, to be safe over the whole forecast
+    assert 0 < handed_back < 40 and env.progress > progress_of(env, car)
     assert flags[handed_back:].mean() <= 0.1  # the policy drives from then on (a blip near the road edge at 30 m/s)
     assert not any(i["crash_vehicle"] or i["out_of_road"] for i in infos)
 

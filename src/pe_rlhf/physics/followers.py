@@ -35,7 +35,7 @@ from pe_rlhf.physics.road_users import cached_path, follows_lanes
 ON_LANE_MARGIN = 1.0  # [m] highway-env's neighbour_vehicles: a vehicle this far outside a lane is still in it
 LEADER_MIN_GAP = 0.01  # [m] highway-env's utils.not_zero floor of the IDM's gap
 PATH_STEP = 0.1  # [s] the step of a follower's path (the forecast's)
-PATH_SECONDS = 4.0  # [s] of a follower's path at its speed (the forecast's 3 s and more; then straight on)
+PATH_SECONDS = 4.0  # [s] of a follower's path at its speed (then straight on, within the forecast's 6 s)
 
 
 @dataclass(frozen=True, eq=False)

@@ -69,13 +69,16 @@ LANE_MAX_HEADING_OFFSET = math.pi / 8  # [rad] largest angle to the lane taken t
 @dataclass(frozen=True)
 class SafetyForecastConfig:
     """``hold`` [s]: the candidate action is held this long; ``horizon`` [s]: the forecast's length;
-    ``dt`` [s]: its integration step; ``recovery_braking`` [m/s^2]: deceleration after ``hold``; ``recovery``: the
-    recovery's steering (``RECOVERIES``); ``hold_one_lane``: the hold ends once the car has moved one lane sideways;
+    ``dt`` [s]: its integration step (``horizon`` 6 s: the action held 1 s, then a full stop from the top speed,
+    30 m/s at 6 m/s^2; a 3 s forecast read never-brake at 108 km/h safe until braking could no longer stop it,
+    docs/experiments/shield-calibration.md); ``recovery_braking`` [m/s^2]: deceleration after ``hold``;
+    ``recovery``: the recovery's steering (``RECOVERIES``); ``hold_one_lane``: the hold ends once the car has moved
+    one lane sideways;
     ``followers``: moving road users behind the ego drive on under the IDM (False: they are ignored);
     ``road_users``: how a lane-following road user ahead moves (:data:`pe_rlhf.physics.road_users.MODELS`)."""
 
     hold: float = 1.0
-    horizon: float = 3.0
+    horizon: float = 6.0
     dt: float = 0.1
     recovery_braking: float = MAX_BRAKING
     recovery: str = "route_or_straight_or_ahead"
