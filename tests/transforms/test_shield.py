@@ -17,6 +17,7 @@ from pe_rlhf.envs.torchrl_env import unwrap
 from pe_rlhf.mentors import ADVERSARY_NAMES, make_mentor
 from pe_rlhf.physics import SafetyForecastConfig
 from pe_rlhf.transforms import SafetyShield
+from pe_rlhf.transforms.shield import shield_selector
 from pe_rlhf.transforms.keys import PHYSICS_TIME_TO_FAILURE, POLICY_TIME_TO_FAILURE, SHIELD_OVERRIDE
 from pe_rlhf.wrappers import SafetyShieldWrapper
 from _scenes import EMPTY_STRAIGHT, add_car, add_obstacle, long_road_env, place_ego, progress_of
@@ -29,10 +30,11 @@ def keep_lane(sim) -> np.ndarray:
     return THROTTLE.copy()
 
 
-def shielded_run(env, policy, steps: int, on_step=None):
-    """``policy(sim)`` through a ``SafetyShieldWrapper`` over the already placed scene ``env`` (a DrivingEnv);
-    returns the override flags, the infos and whether the episode ended."""
-    shield = SafetyShieldWrapper(env)
+def shielded_run(env, policy, steps: int, on_step=None, selector=None):
+    """``policy(sim)`` through a ``SafetyShieldWrapper`` (its rule: ``selector``, the shipped one by default) over
+    the already placed scene ``env`` (a DrivingEnv); returns the override flags, the infos and whether the episode
+    ended."""
+    shield = SafetyShieldWrapper(env, selector=selector)
     shield.core.reset(env)
     flags, infos = [], []
     for i in range(steps):
@@ -57,6 +59,24 @@ def test_a_policy_driving_into_a_standing_obstacle_is_overridden_before_the_cras
     assert infos[first][POLICY_TIME_TO_FAILURE] < infos[first][PHYSICS_TIME_TO_FAILURE] - 0.5
     gap = env.route.project(obstacle.position, env.route_segment)[1] - env.progress
     assert gap > env.vehicle.LENGTH  # it stopped (or passed no closer than a car length) behind the obstacle
+
+
+def test_full_throttle_at_top_speed_towards_an_obstacle_is_stopped_in_time_and_needs_the_6_s_forecast():
+    """30 m/s, full throttle, a standing obstacle 200 m ahead: the action held 1 s and a full stop from 30 m/s take
+    5 s (105 m). The shipped 6 s forecast overrides in time and the car stops behind it; a 3 s forecast reads every
+    action safe until braking can no longer stop the car, and it hits the obstacle (validation scene 508)."""
+    outcomes = {}
+    for horizon in (3.0, SafetyForecastConfig().horizon):
+        env = long_road_env(600.0)
+        place_ego(env, 60.0, lane=1, speed=30.0)
+        obstacle = add_obstacle(env, 260.0, lane=1)
+        selector = shield_selector(forecast=SafetyForecastConfig(horizon=horizon))
+        flags, infos, _ = shielded_run(env, lambda sim: np.array([0.0, 1.0], np.float32), 150, selector=selector)
+        outcomes[horizon] = (any(i["crash_object"] for i in infos), progress_of(env, obstacle) - env.progress)
+    assert SafetyForecastConfig().horizon == 6.0
+    assert outcomes[3.0][0]  # the short forecast lets it through
+    crashed, gap = outcomes[6.0]
+    assert not crashed and gap > env.vehicle.LENGTH  # stopped behind the obstacle
 
 
 def test_a_policy_keeping_its_lane_on_a_clear_road_is_never_overridden():
