@@ -7,7 +7,8 @@
     python benchmarks/claims_summary.py --readme    # README's results table from docs/results/claims/summary.json
 
 Writes ``summary.json`` (``{claim: {method: {"success": [mean, lo, hi], "test_safety": ..., "train_violations":
-..., "takeover_usage": ..., "seeds": N}}}``) and ``summary.md``; prints the table. With ``--readme [README.md]``
+..., "takeover_usage": ..., "seeds": N, "per_seed": ...}}}``; where the sweep shielded its cells, also
+``"shielded_success"``, ``"shielded_test_safety"``, ``"override_share"``) and ``summary.md``; prints the table. With ``--readme [README.md]``
 it also rewrites README's results table (``pe_rlhf.apps.sweeps.claims.readme_table``, between its two
 ``<!-- claims-table: ... -->`` lines) from the summary; with no cells it reads ``OUT/summary.json``.
 """

@@ -121,3 +121,35 @@ def test_the_column_joins_the_summary_where_the_cells_carry_it(tmp_path):
         csv.writer(f).writerow(["pe-rlhf__professional__s0", "pe-rlhf", "professional", "-", 0, "finished", 0.6, 0.1,
                                 3, 0.3, ""])
     assert "train_violations_after" not in claims_summary(tmp_path / "cells_after.csv")["professional"]["pe_rlhf"]
+
+
+def test_shielded_columns_join_the_claim_with_per_seed_lists_and_a_row_under_the_method(tmp_path):
+    """Cells evaluated under the runtime shield too (a sweep with ``shield``) give each method of their claim the
+    shielded success and safety, the override share, per-seed lists, and a ``<method> shielded`` row; a method
+    without them (IDM-MOBIL) has ``null`` and no such row."""
+    fields = FIELDS + ["shielded_success_rate", "shielded_safety_violation", "override_share"]
+    cells = [{**row("pe-rlhf", "professional", s, ok, bad, 2, 0.3), "shielded_success_rate": sok,
+              "shielded_safety_violation": sbad, "override_share": share}
+             for s, ok, bad, sok, sbad, share in [(1, 0.6, 0.3, 0.62, 0.0, 0.05), (0, 0.8, 0.1, 0.78, 0.02, 0.03)]]
+    cells.append({**row("idm-mobil", "-", 0, 0.42, 0.02), "shielded_success_rate": "nan",
+                  "shielded_safety_violation": "nan", "override_share": "nan"})
+    with open(tmp_path / "cells.csv", "w", newline="") as f:
+        writer = csv.DictWriter(f, fields)
+        writer.writeheader()
+        writer.writerows(cells)
+    claim = claims_summary(tmp_path / "cells.csv")["professional"]
+    agent = claim["pe_rlhf"]
+    assert agent["shielded_success"][0] == pytest.approx(0.70)
+    assert agent["shielded_test_safety"][0] == pytest.approx(0.99)
+    assert agent["override_share"][0] == pytest.approx(0.04)
+    assert agent["per_seed"] == {"seed": [0, 1], "success": [0.8, 0.6], "test_safety": [0.9, pytest.approx(0.7)],
+                                 "shielded_success": [0.78, 0.62], "shielded_test_safety": [0.98, 1.0]}
+    assert claim["idm_mobil"]["shielded_success"] is None and "shielded_success" not in claim["idm_mobil"]["per_seed"]
+    lines = markdown_table({"professional": claim}).splitlines()
+    shielded = [line for line in lines if "shielded" in line]
+    assert len(shielded) == 1 and shielded[0].startswith("| professional | pe_rlhf shielded (override share 0.040")
+    assert "| 0.70 [" in shielded[0] and shielded[0].endswith("| — | — |")
+    # cells from before the shield (no such columns): no shielded keys at all
+    write_cells(tmp_path / "plain.csv", [row("pe-rlhf", "professional", 0, 0.8, 0.1, 2, 0.3)])
+    plain = claims_summary(tmp_path / "plain.csv")["professional"]["pe_rlhf"]
+    assert "shielded_success" not in plain and set(plain["per_seed"]) == {"seed", "success", "test_safety"}

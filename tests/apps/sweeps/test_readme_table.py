@@ -89,3 +89,16 @@ def test_the_script_rewrites_a_readme_from_summary_json(tmp_path, capsys):
     with pytest.raises(SystemExit):
         bench.main(["--readme", str(bad), "--out", str(tmp_path)])
     assert "BAD.md" in capsys.readouterr().err
+
+
+def test_a_shielded_method_gets_a_row_of_its_own_and_the_line_says_what_it_is():
+    agent = {**entry((0.6, 0.5, 0.7), seeds=5), "shielded_success": [0.62, 0.55, 0.7],
+             "shielded_test_safety": [1.0, 1.0, 1.0], "override_share": [0.05, 0.04, 0.06]}
+    summary = {"professional": {"pe_rlhf": agent, "idm_mobil": {**entry((0.42, 0.42, 0.42), seeds=1, train=None,
+                                                                        usage=None), "shielded_success": None}}}
+    text = readme_table(summary)
+    got = rows(text)
+    assert [r[1] for r in got] == ["PE-RLHF", "PE-RLHF, shielded", "IDM-MOBIL"]
+    assert got[1] == ["professional", "PE-RLHF, shielded", "5", "0.62 [0.55, 0.70]", "1.00", "—", "—"]
+    assert "runtime shield" in text.splitlines()[-1]
+    assert "shield" not in readme_table({"professional": {"pe_rlhf": entry((0.6, 0.5, 0.7))}}).splitlines()[-1]

@@ -14,7 +14,7 @@ import pytest
 from _scripts import load_script
 
 from pe_rlhf.apps.sweeps import SweepConfigError, check_cell_configs, expand, load_sweep, parse_sweep, run_sweep
-from pe_rlhf.apps.sweeps.cells import CELL_FILE, FINAL_EVAL, attempt_argv, check_folder, plan, write_record
+from pe_rlhf.apps.sweeps.cells import CELL_FILE, FINAL_EVAL, SHIELDED_EVAL, attempt_argv, check_folder, plan, write_record
 from pe_rlhf.apps.sweeps.execution import run_cells
 from pe_rlhf.apps.sweeps.summary import aggregate, cell_rows, mean_std, write_summary
 
@@ -51,6 +51,21 @@ def test_grid_expansion_names_and_overrides():
     idm = by_name["idm-mobil__s1"]
     assert idm.overrides == ("profile=smoke", "seed=1") and idm.method.recipe == "evaluate"
     check_cell_configs(cells)  # every override is a valid recipe config
+    assert {c.shield for c in cells} == {None}
+
+
+def test_a_shielded_sweep_shields_only_its_trained_cells():
+    from pe_rlhf.runtime.recipe import SHIELDED_EVAL as RECIPES_FILE
+    from pe_rlhf.transforms.shield import DEFAULT_THRESHOLD
+
+    assert SHIELDED_EVAL == RECIPES_FILE  # the sweep reads what `train.py --shield` writes
+
+    cells = expand(_spec(shield=0.25))
+    assert {c.name.split("__")[0]: c.shield for c in cells} == {"pe-rlhf": 0.25, "haco": 0.25, "idm-mobil": None}
+    assert _spec(shield=True).shield == DEFAULT_THRESHOLD and _spec(shield=False).shield is None
+    assert expand(_spec(shield=0))[0].shield == 0.0  # a threshold of 0 s is a shield too
+    # the threshold is not the cell's training: a folder trained without it is still the cell's
+    assert cells[0].record()["shield"] == 0.25 and cells[0].overrides == expand(_spec())[0].overrides
 
 
 def test_variants_cross_parameters_and_baselines_map_to_their_recipe():
@@ -99,6 +114,8 @@ def test_named_sweep_configs_load_and_validate():
     ({"base": ["profile"]}, r"base\[0\]"),
     ({"metrics": ["succes_rate"]}, "metrics"),
     ({"resources": {"num_cpus": 0}}, r"resources\.num_cpus"),
+    ({"shield": -0.5}, r"shield=-0\.5 is invalid: a threshold in seconds"),
+    ({"shield": "yes"}, "shield='yes'"),
 ])
 def test_bad_sweep_fields_are_named(changes, field):
     with pytest.raises(SweepConfigError, match=field):
@@ -315,14 +332,15 @@ def test_a_sweep_on_local_ray(tmp_path, monkeypatch):
 
     spec = parse_sweep({"name": "smoke", "base": [*TINY, "collector.total_frames=100"], "seeds": [0],
                         "methods": ["pe-rlhf"],  # one cell: the process backend's test runs pe-rlhf and haco
-                        "metrics": ["success_rate", "train_safety_violations", "value_takeover_rate"]})
+                        "metrics": ["success_rate", "train_safety_violations", "value_takeover_rate"],
+                        "shield": 0.5})  # trained, then evaluated under the shield in the same task
     ray.init(address="local", num_cpus=2,  # a fresh instance, even beside a running `ray start`
              include_dashboard=False, log_to_driver=False)
     try:
         report = run_sweep(spec, tmp_path, progress=False)
         assert report.failed == {} and sorted(report.finished) == ["pe-rlhf__s0"]
         for name in report.finished:
-            for output in (FINAL_EVAL, "metrics.csv", "config.yaml", CELL_FILE):
+            for output in (FINAL_EVAL, SHIELDED_EVAL, "metrics.csv", "config.yaml", CELL_FILE):
                 assert (tmp_path / name / output).is_file(), (name, output)
             assert (tmp_path / "logs" / f"{name}.log").stat().st_size > 0
         for output in ("summary.md", "summary.csv", "cells.csv", "summary.png"):
@@ -358,6 +376,27 @@ def test_the_process_backend_runs_the_cells_resumably_without_ray(tmp_path, caps
     assert "| pe-rlhf | 1/1 |" in (out / "summary.md").read_text()
     assert main(["sweep", str(config), "--backend", "processes", "--no-progress", "--out", str(out)]) == 0
     assert "2 cells were finished already, 0 finished now, 0 failed" in capsys.readouterr().out
+    # the same sweep with a shield: the trained cells get the shielded evaluation alone, not another training
+    trained = {name: {f: (out / name / f).read_bytes() for f in (FINAL_EVAL, "metrics.csv")}
+               for name in ("haco__s0", "pe-rlhf__s0")}
+    config.write_text(json.dumps({**json.loads(config.read_text()), "shield": 0.5,
+                                  "metrics": ["success_rate", "shielded_success_rate", "override_share"]}))
+    assert main(["sweep", str(config), "--dry-run", "--out", str(out)]) == 0
+    assert "2 to evaluate shielded" in capsys.readouterr().out
+    assert main(["sweep", str(config), "--backend", "processes", "--no-progress", "--out", str(out)]) == 0
+    assert "0 cells were finished already, 2 finished now, 0 failed" in capsys.readouterr().out
+    for name, files in trained.items():
+        assert {f: (out / name / f).read_bytes() for f in files} == files
+        shielded = json.loads((out / name / SHIELDED_EVAL).read_text())
+        assert shielded["threshold"] == 0.5 and shielded["episodes"] == 1 and 0 <= shielded["override_share"] <= 1
+        log = (out / "logs" / f"{name}.log").read_text()
+        assert "trained, the shielded evaluation" in log and "the shield drove" in log
+    with open(out / "cells.csv", newline="") as f:
+        rows = {r["cell"]: r for r in csv.DictReader(f)}
+    assert 0 <= float(rows["pe-rlhf__s0"]["override_share"]) <= 1
+    assert float(rows["pe-rlhf__s0"]["shielded_success_rate"]) in (0.0, 1.0)
+    assert "| pe-rlhf | 1/1 |" in (out / "summary.md").read_text() and "shielded success" in (out / "summary.md"
+                                                                                                 ).read_text()
 
 
 def test_the_process_backend_stops_cells_at_the_deadline_and_they_run_again_later(tmp_path, capsys):

@@ -40,7 +40,9 @@ def _baseline_method(run_dir: Path) -> str | None:
     return None if method is None else str(method)
 
 
-def _run_config(run_dir: Path):
+def saved_run_config(run_dir: str | Path):
+    """The config a run in ``run_dir`` (either kind) ran with, as its ``config.yaml`` saved it."""
+    run_dir = Path(run_dir)
     if _baseline_method(run_dir) is not None:  # saved whole by the run: read as written
         from omegaconf import OmegaConf
 
@@ -55,12 +57,12 @@ def run_world(run_dir: str | Path):
     ``env`` group): its agent must be evaluated with the same observation (``lane_features``, ``lidar_beams``)."""
     from pe_rlhf.runtime.config import driving_config
 
-    return driving_config(_run_config(Path(run_dir)))
+    return driving_config(saved_run_config(Path(run_dir)))
 
 
 def run_observation_size(run_dir: str | Path) -> int:
     """The observation width the actor of the run in ``run_dir`` (either kind) reads."""
-    return obs_dim(_run_config(Path(run_dir)))
+    return obs_dim(saved_run_config(Path(run_dir)))
 
 
 def load_run_actor(run_dir: str | Path):
@@ -76,7 +78,7 @@ def load_run_actor(run_dir: str | Path):
     if final is None:
         raise FileNotFoundError(f"{run_dir}: the baseline run has no {LEGACY_ACTOR_FILE} or {ACTOR_FILE} (it has "
                                 "not finished)")
-    cfg = _run_config(run_dir)
+    cfg = saved_run_config(run_dir)
     actor = make_actor(obs_dim(cfg), hidden=tuple(cfg.loss.hidden))
     actor.load_state_dict(load_weights(final))
     return actor

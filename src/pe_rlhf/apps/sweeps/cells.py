@@ -5,8 +5,10 @@ A cell is one run: ``method x mentor x parameter x seed``. Its name joins the pa
 
 On disk, per cell folder: ``cell.json`` (what the cell runs: written before its first attempt, compared on
 every later invocation so a changed config cannot reuse a stale folder), then the recipe's outputs;
-``final_eval.json`` marks the cell finished (never rerun). ``OUT/logs/<name>.log`` collects every
-attempt's output.
+``final_eval.json`` marks the cell finished (never rerun); in a sweep with ``shield``, a trained cell is finished
+when ``shielded_eval.json`` (its actor under the runtime shield, on the same scenes) is there too, and a cell that
+has ``final_eval.json`` but not that gets the shielded evaluation alone, not another training.
+``OUT/logs/<name>.log`` collects every attempt's output.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from pe_rlhf.apps.sweeps.spec import MentorSpec, SweepConfigError, SweepSpec, Va
 
 NONE = "-"  # the label of an axis that does not apply to a cell
 FINAL_EVAL = "final_eval.json"
+SHIELDED_EVAL = "shielded_eval.json"  # as the recipes write it (pe_rlhf.runtime.recipe.SHIELDED_EVAL)
 CELL_FILE = "cell.json"
 LOG_DIR = "logs"
 _UNSAFE = re.compile(r"[^A-Za-z0-9._+=-]")
@@ -39,6 +42,7 @@ class Cell:
     seed: int
     overrides: tuple[str, ...]
     values: tuple = ()
+    shield: float | None = None  # [s]: the trained actor is also evaluated under the runtime shield
 
     @property
     def row(self) -> tuple[str, str, str]:
@@ -49,7 +53,7 @@ class Cell:
         """What ``cell.json`` holds: enough to tell whether a folder was made by this cell."""
         return {"name": self.name, "recipe": self.method.recipe, "policy": self.method.policy,
                 "method": self.method.name, "mentor": self.mentor, "parameter": self.parameter, "seed": self.seed,
-                "overrides": list(self.overrides)}
+                "overrides": list(self.overrides), "shield": self.shield}
 
 
 def _safe(part: str) -> str:
@@ -80,7 +84,8 @@ def expand(spec: SweepSpec) -> list[Cell]:
                          f"s{seed}"]
                 cells.append(Cell(name="__".join(_safe(p) for p in parts if p is not None), method=method,
                                   mentor=mentor.label if mentor else NONE, parameter=variant.label if variant else NONE,
-                                  seed=seed, overrides=overrides, values=variant.values if variant else ()))
+                                  seed=seed, overrides=overrides, values=variant.values if variant else (),
+                                  shield=spec.shield if method.trains else None))
     names = [c.name for c in cells]
     duplicates = sorted({n for n in names if names.count(n) > 1})
     if duplicates:
@@ -150,8 +155,14 @@ def log_path(out: Path, cell: Cell) -> Path:
 
 
 def is_finished(out: Path, cell: Cell) -> bool:
-    """A cell with ``final_eval.json`` is done and never rerun."""
-    return (cell_dir(out, cell) / FINAL_EVAL).is_file()
+    """A cell with ``final_eval.json`` (and, when it is to be shielded, ``shielded_eval.json``) is done and never
+    rerun."""
+    return (cell_dir(out, cell) / FINAL_EVAL).is_file() and not needs_shielded_eval(out, cell)
+
+
+def needs_shielded_eval(out: Path, cell: Cell) -> bool:
+    """A trained cell of a sweep with ``shield`` that has no ``shielded_eval.json`` yet."""
+    return cell.shield is not None and not (cell_dir(out, cell) / SHIELDED_EVAL).is_file()
 
 
 def check_folder(out: Path, cell: Cell) -> None:

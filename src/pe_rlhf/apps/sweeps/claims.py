@@ -10,6 +10,12 @@ An evaluation-only method (IDM-MOBIL: mentor ``-`` in the cells) joins every cla
 (a 95% bootstrap CI of the mean over seeds); with one seed, or when every seed agrees, ``lo == hi == mean``.
 A metric a method does not have (IDM-MOBIL is not trained) is ``null``. Only finished cells count.
 
+Where a claim's cells were also evaluated under the runtime shield (a sweep with ``shield``: the ``cells.csv`` columns
+``shielded_success_rate``, ``shielded_safety_violation``, ``override_share``), every method of that claim gains
+``"shielded_success"``, ``"shielded_test_safety"`` and ``"override_share"`` as ``[mean, lo, hi]`` (``null`` for a
+method without them, e.g. IDM-MOBIL) and its ``per_seed`` the lists ``shielded_success`` and
+``shielded_test_safety``; the tables show a ``<method> shielded`` row under the method's.
+
 Where the cells carry a ``train_violations_after`` column (:func:`add_violations_after`: the training safety
 violations logged after a given env step, e.g. after a collapsing mentor's switch or after the warm-up), every
 method of that claim gains ``"train_violations_after": [mean, lo, hi]`` (``null`` for a method without it).
@@ -27,7 +33,12 @@ from pe_rlhf.evaluation.statistics import bootstrap_interval  # re-exported: old
 
 COLUMNS = {"success": ("success_rate", False), "test_safety": ("safety_violation", True),
            "train_violations": ("train_safety_violations", False), "takeover_usage": ("takeover_data_usage", False)}
-OPTIONAL_COLUMNS = {"train_violations_after": ("train_violations_after", False)}
+OPTIONAL_COLUMNS = {"train_violations_after": ("train_violations_after", False),
+                    "shielded_success": ("shielded_success_rate", False),
+                    "shielded_test_safety": ("shielded_safety_violation", True),
+                    "override_share": ("override_share", False)}
+SHIELDED_PER_SEED = {"shielded_success": ("shielded_success_rate", False),
+                     "shielded_test_safety": ("shielded_safety_violation", True)}
 NO_MENTOR = "-"  # the mentor column of an evaluation-only cell
 VIOLATIONS = "train/safety_violations_total"  # cumulative, in each run's metrics.csv
 MISSING = (None, "", "nan")  # a cells.csv value that holds no number
@@ -119,8 +130,11 @@ def per_seed(members: list[dict]) -> dict[str, list]:
         values = [float(r[name]) if r.get(name) not in MISSING else math.nan for r in ordered]
         return [1.0 - v if complement else v for v in values]
 
-    return {"seed": [int(float(r["seed"])) for r in ordered], "success": column("success_rate", False),
-            "test_safety": column("safety_violation", True)}
+    out = {"seed": [int(float(r["seed"])) for r in ordered], "success": column("success_rate", False),
+           "test_safety": column("safety_violation", True)}
+    if any(r.get("shielded_success_rate") not in MISSING for r in ordered):  # evaluated under the shield too
+        out.update({name: column(*spec) for name, spec in SHIELDED_PER_SEED.items()})
+    return out
 
 
 def markdown_table(summary: dict) -> str:
@@ -135,7 +149,17 @@ def markdown_table(summary: dict) -> str:
         for method, m in methods.items():
             lines.append(f"| {claim} | {method} | {m['seeds']} | {cell(m['success'])} | {cell(m['test_safety'])} | "
                          f"{cell(m['train_violations'], '.1f')} | {cell(m['takeover_usage'])} |")
+            if is_shielded(m):
+                lines.append(f"| {claim} | {method} shielded (override share {cell(m['override_share'], '.3f')}) | "
+                             f"{m['seeds']} | {cell(m['shielded_success'])} | {cell(m['shielded_test_safety'])} | "
+                             "— | — |")
     return "\n".join(lines)
+
+
+def is_shielded(entry: dict) -> bool:
+    """Whether a method's summary entry has its cells' evaluation under the runtime shield."""
+    value = entry.get("shielded_success")
+    return value is not None and all(isinstance(x, (int, float)) and math.isfinite(x) for x in value)
 
 
 def write_claims(cells_csv: str | Path | list[str | Path], out_dir: str | Path) -> dict:
@@ -186,9 +210,15 @@ def readme_table(summary: dict, steps: int = 30_000, warmup: int = 10_000,
                          f"{_interval(m.get('success'), '.2f')} | {_interval(m.get('test_safety'), '.2f')} | "
                          f"{_interval(m.get('train_violations'), '.1f')} | "
                          f"{_interval(m.get('takeover_usage'), '.2f')} |")
+            if is_shielded(m):  # the same agents under the runtime shield: no training of their own
+                lines.append(f"| {mentor} | {METHOD_LABELS.get(method, method)}, shielded | {m['seeds']} | "
+                             f"{_interval(m['shielded_success'], '.2f')} | "
+                             f"{_interval(m['shielded_test_safety'], '.2f')} | — | — |")
     lines += ["", f"Mean [95% bootstrap interval] over seeds; each learned cell {steps // 1000}K env steps "
                   f"({warmup // 1000}K of them the mentor's warm-up), final evaluation on {scenes}; "
-                  "test safety is 1 - the episodes' safety violation rate; IDM-MOBIL is evaluated, not trained."]
+                  "test safety is 1 - the episodes' safety violation rate; IDM-MOBIL is evaluated, not trained"
+                  + ("; a shielded row is the same agents deployed under the runtime shield (docs/guide/shield.md)."
+                     if any(is_shielded(m) for ms in summary.values() for m in ms.values()) else ".")]
     return "\n".join(lines)
 
 
@@ -209,5 +239,5 @@ def readme_table_in(text: str) -> str:
 
 
 __all__ = ["METHOD_LABELS", "README_TABLE_END", "README_TABLE_START", "add_violations_after", "bootstrap_interval",
-           "claims_summary", "markdown_table", "per_seed", "read_cells", "readme_table", "readme_table_in",
+           "claims_summary", "is_shielded", "markdown_table", "per_seed", "read_cells", "readme_table", "readme_table_in",
            "violations_after", "with_readme_table", "write_claims"]

@@ -15,7 +15,7 @@ import re
 import shutil
 from pathlib import Path
 
-from pe_rlhf.apps.sweeps.cells import cell_dir, check_folder, is_finished
+from pe_rlhf.apps.sweeps.cells import FINAL_EVAL, cell_dir, check_folder, is_finished
 from pe_rlhf.apps.sweeps.spec import SweepConfigError, load_sweep
 
 
@@ -25,15 +25,19 @@ def _state(out: Path, cell) -> str:
     from pe_rlhf.runtime.checkpoint import find_checkpoint
 
     directory = cell_dir(out, cell)
+    if (directory / FINAL_EVAL).is_file():
+        return "shield"  # trained: the shielded evaluation is left
     return "resume" if find_checkpoint(directory / "checkpoints") is not None else "run"
 
 
 def print_plan(spec, cells, out: Path) -> None:
     """The dry run: every cell, whether it is finished / resumes / runs, and its overrides."""
     states = [_state(out, c) for c in cells]
+    shielding = f", {states.count('shield')} to evaluate shielded" if spec.shield is not None else ""
     print(f"sweep {spec.name}: {len(cells)} cells ({states.count('finished')} finished, "
-          f"{states.count('resume')} to resume, {states.count('run')} to run), {spec.num_cpus:g} CPU each; "
-          f"out {out}")
+          f"{states.count('resume')} to resume, {states.count('run')} to run{shielding}), {spec.num_cpus:g} CPU each; "
+          f"out {out}" + (f"; trained cells also under the shield ({spec.shield:g} s)" if spec.shield is not None
+                          else ""))
     for cell, state in zip(cells, states):
         what = cell.method.recipe + (f" --policy {cell.method.policy}" if cell.method.policy else "")
         print(f"  {state:8s} {cell.name}: {what} {' '.join(cell.overrides)}")

@@ -3,7 +3,9 @@
 
 Each task runs the cell's recipe in the Ray worker process (:func:`run_cell`): ``OMP_NUM_THREADS`` and
 torch's intra-op threads set to the cell's CPUs (1 by default), ``SDL_VIDEODRIVER=dummy``, stdout and
-stderr appended to ``OUT/logs/<cell>.log``. A cell that raises is reported and left unfinished; the next
+stderr appended to ``OUT/logs/<cell>.log``. In a sweep with ``shield`` the trained actor is then evaluated under
+the runtime shield on the final evaluation's scenes (``shielded_eval.json``); a cell that had finished training
+before gets that evaluation alone. A cell that raises is reported and left unfinished; the next
 invocation reruns it (from its newest checkpoint when it has one). With a multi-node cluster, ``OUT``
 must be a path every node sees (a shared filesystem) and pe_rlhf installed on every node. Without Ray, the
 same cells run as local processes: :mod:`pe_rlhf.apps.sweeps.processes`.
@@ -19,7 +21,8 @@ import traceback
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from pe_rlhf.apps.sweeps.cells import FINAL_EVAL, Cell, attempt_argv, cell_dir, log_path, plan, write_record
+from pe_rlhf.apps.sweeps.cells import (FINAL_EVAL, SHIELDED_EVAL, Cell, attempt_argv, cell_dir, log_path,
+                                       needs_shielded_eval, plan, write_record)
 from pe_rlhf.apps.sweeps.methods import PROXY_Q_RECIPES
 
 THREAD_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS")
@@ -90,8 +93,28 @@ def _evaluate_only(policy: str, argv: list[str], directory: Path) -> None:
     print(f"{policy}: success {summary['success_rate']['mean']:.2f} on {summary['episodes']} episodes")
 
 
+def evaluate_shielded_cell(directory: Path, threshold: float) -> dict:
+    """The finished run in ``directory`` (either kind of recipe) under the runtime shield (``threshold`` seconds) on
+    its final evaluation's scenes (its ``eval.split``, ``eval.episodes``, world), written as ``shielded_eval.json``."""
+    from pe_rlhf.algorithms.proxy_q.trained_policy import load_run_actor, saved_run_config
+    from pe_rlhf.evaluation import TorchRLPolicyAdapter, write_json
+    from pe_rlhf.runtime.recipe import evaluate_shielded
+
+    started = time.time()
+    summary = evaluate_shielded(TorchRLPolicyAdapter(load_run_actor(directory)), threshold,
+                                saved_run_config(directory), name=f"{directory.name} shielded")
+    summary["threshold"] = threshold
+    summary["eval_seconds"] = time.time() - started
+    write_json(directory / SHIELDED_EVAL, summary)
+    print(f"shielded (threshold {threshold:g} s): success {summary['success_rate']['mean']:.2f}, safety violation "
+          f"{summary['safety_violation']['mean']:.2f}, the shield drove {summary['override_share']:.3f} of the steps, "
+          f"on {summary['episodes']} episodes", flush=True)
+    return summary
+
+
 def run_cell(cell: Cell, out: str, threads: int = 1) -> dict:
-    """Run one cell here (the body of its Ray task); returns ``{"name", "seconds", "resumed"}``."""
+    """Run one cell here (the body of its Ray task); returns ``{"name", "seconds", "resumed"}``. A cell whose
+    training has finished but whose shielded evaluation is missing gets that evaluation alone."""
     import torch
 
     for var in THREAD_VARS:
@@ -101,11 +124,20 @@ def run_cell(cell: Cell, out: str, threads: int = 1) -> dict:
     directory = cell_dir(Path(out), cell)
     started = time.time()
     with _output_to(log_path(Path(out), cell)):
-        argv, resumed = attempt_argv(directory, list(cell.overrides))
-        print(f"=== {time.strftime('%Y-%m-%d %H:%M:%S')} {cell.name}: "
-              f"{'resume' if resumed else 'start'} {cell.method.recipe} {' '.join(argv)}", flush=True)
+        trained = (directory / FINAL_EVAL).is_file()
+        if trained:
+            argv, resumed = [], True
+            print(f"=== {time.strftime('%Y-%m-%d %H:%M:%S')} {cell.name}: trained, the shielded evaluation",
+                  flush=True)
+        else:
+            argv, resumed = attempt_argv(directory, list(cell.overrides))
+            print(f"=== {time.strftime('%Y-%m-%d %H:%M:%S')} {cell.name}: "
+                  f"{'resume' if resumed else 'start'} {cell.method.recipe} {' '.join(argv)}", flush=True)
         try:
-            _run_recipe(cell.method.recipe, cell.method.policy, argv, directory)
+            if not trained:
+                _run_recipe(cell.method.recipe, cell.method.policy, argv, directory)
+            if needs_shielded_eval(Path(out), cell):
+                evaluate_shielded_cell(directory, float(cell.shield))
         except BaseException:
             traceback.print_exc()
             raise

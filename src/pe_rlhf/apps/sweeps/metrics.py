@@ -1,5 +1,6 @@
 """The columns a sweep's tables can show: :data:`METRICS` (header, number format, how to read it from a
-cell's ``final_eval.json`` and the last row of its ``metrics.csv``) and the default selection
+cell's ``final_eval.json`` (with its ``shielded_eval.json`` under ``"shielded"`` where the sweep shields) and the
+last row of its ``metrics.csv``) and the default selection
 :data:`DEFAULT_METRICS`. A module of its own, so that the sweep spec, the summary and the plots share it
 without importing one another.
 """
@@ -24,6 +25,14 @@ class Metric:
 
 def _test(key: str) -> Callable[[dict, dict], float]:
     return lambda final, last: float((final.get(key) or {}).get("mean", NAN))
+
+
+def _shielded(key: str) -> Callable[[dict, dict], float]:
+    """The mean of ``key`` in the cell's evaluation under the runtime shield (NaN where it was not shielded)."""
+    def read(final: dict, last: dict) -> float:
+        value = (final.get("shielded") or {}).get(key, NAN)
+        return float(value["mean"] if isinstance(value, dict) else value)
+    return read
 
 
 def logged_metrics(column: str, *training_keys: str) -> Callable[[dict, dict], float]:
@@ -53,6 +62,10 @@ METRICS: dict[str, Metric] = {
     "crash_object_rate": Metric("crash object", ".2f", _test("crash_object_rate")),
     "out_of_road_rate": Metric("out of road", ".2f", _test("out_of_road_rate")),
     "timeout_rate": Metric("timeout", ".2f", _test("timeout_rate")),
+    # the trained actor under the runtime shield on the same scenes (a sweep with ``shield``)
+    "shielded_success_rate": Metric("shielded success", ".2f", _shielded("success_rate")),
+    "shielded_safety_violation": Metric("shielded safety viol.", ".2f", _shielded("safety_violation")),
+    "override_share": Metric("shield override share", ".3f", _shielded("override_share")),
     "train_wall_minutes": Metric("train wall min", ".1f",
                                  lambda final, last: float(last["wall_time"]) / 60 if "wall_time" in last else NAN),
 }

@@ -14,6 +14,8 @@
       idm_only: [physics.model=idm]
     metrics: [success_rate, safety_violation]   # columns of summary.md (pe_rlhf.apps.sweeps.metrics.METRICS)
     resources: {num_cpus: 1}             # per cell (Ray task); torch runs that many threads
+    shield: 0.5                          # optional: also evaluate each trained cell's actor under the runtime
+                                         # shield (threshold in seconds; true: the default), shielded_eval.json
 
 The grid is method x mentor x parameter x seed; a method without a mentor (``mentor_key: null``, e.g.
 ``idm-mobil``) skips the mentor axis, one with ``parameters: false`` the parameter axis.
@@ -33,7 +35,7 @@ from typing import Any
 from pe_rlhf.apps.sweeps.methods import MethodSpec, builtin_methods, recipe_names
 
 TOP_LEVEL = ("name", "description", "base", "methods", "mentors", "seeds", "parameters", "variants", "metrics",
-             "resources")
+             "resources", "shield")
 METHOD_FIELDS = ("name", "method", "recipe", "policy", "overrides", "mentor_key", "parameters")
 MENTOR_FIELDS = ("label", "name", "kwargs")
 RESOURCE_FIELDS = ("num_cpus",)
@@ -81,6 +83,7 @@ class SweepSpec:
     metrics: tuple[str, ...] = ()
     num_cpus: float = 1.0
     description: str = ""
+    shield: float | None = None  # [s]: each trained cell's actor is also evaluated under the runtime shield
 
     @property
     def parameter_keys(self) -> tuple[str, ...]:
@@ -234,6 +237,20 @@ def _variants(parameters: Any, variants: Any) -> tuple[Variant, ...]:
     return tuple(grid or named)
 
 
+def _shield(value: Any) -> float | None:
+    """The ``shield`` field: None / false (no shielded evaluation), true (the shield's default threshold) or a
+    threshold in seconds >= 0."""
+    if value is None or value is False:
+        return None
+    if value is True:
+        from pe_rlhf.transforms.shield import DEFAULT_THRESHOLD
+
+        return float(DEFAULT_THRESHOLD)
+    if isinstance(value, (int, float)) and math.isfinite(value) and value >= 0:
+        return float(value)
+    raise _fail("shield", value, "a threshold in seconds >= 0 (e.g. 0.5), true (the default threshold) or false")
+
+
 def parse_sweep(raw: Any, default_name: str = "sweep") -> SweepSpec:
     """A checked :class:`SweepSpec` from a loaded YAML mapping; raises :class:`SweepConfigError`."""
     from pe_rlhf.apps.sweeps.metrics import DEFAULT_METRICS, METRICS
@@ -273,7 +290,7 @@ def parse_sweep(raw: Any, default_name: str = "sweep") -> SweepSpec:
     return SweepSpec(name=name, base=_overrides(raw.get("base"), "base"), methods=methods,
                      seeds=_seeds(raw.get("seeds")), mentors=mentors,
                      variants=_variants(raw.get("parameters"), raw.get("variants")), metrics=tuple(metrics),
-                     num_cpus=float(num_cpus), description=description.strip())
+                     num_cpus=float(num_cpus), description=description.strip(), shield=_shield(raw.get("shield")))
 
 
 def load_sweep(path: str | Path) -> SweepSpec:

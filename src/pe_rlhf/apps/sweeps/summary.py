@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from pe_rlhf.evaluation.statistics import interval_text, seed_stats
-from pe_rlhf.apps.sweeps.cells import CELL_FILE, FINAL_EVAL, NONE, Cell, cell_dir
+from pe_rlhf.apps.sweeps.cells import CELL_FILE, FINAL_EVAL, NONE, SHIELDED_EVAL, Cell, cell_dir
 from pe_rlhf.apps.sweeps.metrics import (  # noqa: F401 (re-exported)
     DEFAULT_METRICS, METRICS, NAN, Metric, last_csv_row, logged_metrics, metric_values)
 
@@ -29,12 +29,14 @@ SUMMARY_MD, SUMMARY_CSV, CELLS_CSV = "summary.md", "summary.csv", "cells.csv"
 
 
 def read_cell(directory: str | Path, metrics: dict[str, Metric] = METRICS) -> dict[str, float]:
-    """Every ``metrics`` value (default :data:`METRICS`) of a finished cell folder (NaN where it has none);
-    {} if unfinished."""
+    """Every ``metrics`` value (default :data:`METRICS`) of a finished cell folder (NaN where it has none; the
+    shielded ones read its ``shielded_eval.json``); {} if unfinished."""
     directory = Path(directory)
     if not (directory / FINAL_EVAL).is_file():
         return {}
     final = json.loads((directory / FINAL_EVAL).read_text())
+    if (directory / SHIELDED_EVAL).is_file():
+        final["shielded"] = json.loads((directory / SHIELDED_EVAL).read_text())
     return metric_values(final, last_csv_row(directory / "metrics.csv"), metrics)
 
 
