@@ -2,11 +2,16 @@
 
     python benchmarks/shield.py --split test --scenes 1000-1049 --json docs/results/shield/summary.json
     python benchmarks/shield.py --split train --scenes 0-9 --agent pe-rlhf-s0=runs/pe-rlhf-s0
+    python benchmarks/shield.py --split test --scenes 1000-1049 --policies --no-floor --resume \
+        --from-sweep runs/sweeps/claims_learner --json docs/results/shield/summary.json   # the claims' agents
 
 Policies: ``random`` (uniform actions), ``adversarial`` (the preset mentor driving alone), ``idm-mobil-blind``
 (physics that does not see static obstacles), the persistent adversaries of :mod:`pe_rlhf.mentors.adversaries`,
 and every ``--agent NAME=RUN_DIR`` (a trained run's actor, as ``pe-rlhf evaluate --checkpoint``; NAME a label,
-e.g. ``pe-rlhf-professional-s0``; agents sharing a NAME prefix before ``-s<seed>`` get a mean row).
+e.g. ``pe-rlhf-professional-s0``; agents sharing a NAME prefix before ``-s<seed>`` get a mean row). With
+``--from-sweep SWEEP_DIR`` the trained cells of a sweep run with ``shield`` (``pe-rlhf sweep``, e.g.
+``recipes/sweeps/claims_learner.yaml``) join as ``<method>-<mentor>-s<seed>`` rows read from their
+``final_eval.json`` and ``shielded_eval.json`` (the same scenes required), not evaluated again.
 
 Writes ``{"<policy>": {"alone": {"success", "violation", ...}, "shielded": {"success", "violation",
 "override_share", ...}}, "idm-mobil": {...}, "decisions_per_second": x, ...}``: rates over the scenes with
@@ -69,8 +74,9 @@ def measure(policies: dict, seeds: list[int], config: DrivingConfig, threshold: 
     apart); decisions per second. ``save(results)`` is called after each policy (a long run keeps what it
     measured); the policies of ``done`` (a saved run's, on the same scenes) are kept, not measured again."""
     kept = {name: row for name, row in (done or {}).items()
-            if isinstance(row, dict) and row.get("alone", {}).get("scene_seeds") == list(seeds)}
-    results = {}
+            if isinstance(row, dict) and row.get("alone", {}).get("scene_seeds") == list(seeds)
+            and not name.endswith("-mean")}
+    results = dict(kept)  # every saved row on these scenes stays; the means are made again
     if floor:
         results["idm-mobil"] = kept.get("idm-mobil") or {"alone": rates(evaluate(
             make_policy("idm-mobil", 0), seeds, config, progress=True, name="idm-mobil").to_dict())}
@@ -90,6 +96,27 @@ def measure(policies: dict, seeds: list[int], config: DrivingConfig, threshold: 
     results.update(agent_means(results))
     results["decisions_per_second"] = decisions_per_second(results)
     return results
+
+
+def sweep_agents(sweep_dir: Path, seeds: list[int]) -> tuple[dict, list[str]]:
+    """``(rows, notes)``: the trained cells of a sweep run with ``shield`` that have both evaluations on ``seeds``,
+    each ``<method>-<mentor>-s<seed>: {"alone", "shielded", "run"}`` from its ``final_eval.json`` and
+    ``shielded_eval.json``; ``notes`` names the cells left out and why."""
+    rows, notes = {}, []
+    for cell in sorted(p for p in Path(sweep_dir).iterdir() if (p / "cell.json").is_file()):
+        info = json.loads((cell / "cell.json").read_text())
+        final, shielded = cell / "final_eval.json", cell / "shielded_eval.json"
+        if not final.is_file() or not shielded.is_file():
+            if info.get("recipe") != "evaluate":
+                notes.append(f"{cell.name}: no {'final_eval.json' if not final.is_file() else 'shielded_eval.json'}")
+            continue
+        alone, under = rates(json.loads(final.read_text())), rates(json.loads(shielded.read_text()))
+        if alone["scene_seeds"] != list(seeds) or under["scene_seeds"] != list(seeds):
+            notes.append(f"{cell.name}: evaluated on other scenes")
+            continue
+        parts = [info["method"], None if info["mentor"] == "-" else info["mentor"], f"s{info['seed']}"]
+        rows["-".join(p for p in parts if p)] = {"alone": alone, "shielded": under, "run": str(cell)}
+    return rows, notes
 
 
 def decisions_per_second(results: dict) -> float:
@@ -153,6 +180,8 @@ def main(argv=None) -> dict:
     parser.add_argument("--policies", nargs="*", default=list(POLICIES), help=f"default: {list(POLICIES)}")
     parser.add_argument("--agent", action="append", default=[], metavar="NAME=RUN_DIR",
                         help="a trained run's actor, alone and shielded (repeatable)")
+    parser.add_argument("--from-sweep", action="append", default=[], type=Path, metavar="SWEEP_DIR",
+                        help="the trained cells of a sweep run with shield, read from their evaluations (repeatable)")
     parser.add_argument("--threshold", type=float, default=0.5, help="the shield's threshold [s]")
     parser.add_argument("--no-floor", action="store_true", help="leave out IDM-MOBIL alone (measured once, apart)")
     parser.add_argument("--json", type=Path, default=None)
@@ -188,8 +217,18 @@ def main(argv=None) -> dict:
             args.json.write_text(json.dumps({**results, "meta": {**meta, "seconds": round(time.time() - start)}},
                                             indent=2) + "\n")
 
+    for sweep in args.from_sweep:
+        if not sweep.is_dir():
+            parser.error(f"--from-sweep {sweep}: no such sweep folder")
     results = measure(policies, seeds, DrivingConfig(split=args.split, lane_features=True), args.threshold, save,
                       floor=not args.no_floor, done=done)
+    for sweep in args.from_sweep:
+        rows, notes = sweep_agents(sweep, seeds)
+        for note in notes:
+            print(f"--from-sweep {sweep}: left out {note}")
+        results.update(rows)
+    results.update(agent_means(results))
+    results["decisions_per_second"] = decisions_per_second(results)
     results["meta"] = {**meta, "seconds": round(time.time() - start)}
     save(results)
     print(f"decisions per second (one thread): {results['decisions_per_second']:.0f}; {len(seeds)} {args.split} "

@@ -56,3 +56,51 @@ def test_resume_keeps_the_policies_measured_on_the_same_scenes(bench, tmp_path):
     assert json.loads(out.read_text())["random"] == saved["random"]
     with pytest.raises(SystemExit):
         bench.main(["--scenes", "0", "--policies", "random", "--resume"])
+
+
+def _evaluation(outcomes, shielded: bool) -> dict:
+    """An evaluation summary's ``episodes_detail`` on scenes 0, 1, ...: ``outcomes`` "success" / "crash" / "timeout"."""
+    detail = [{"scene_seed": i, "success": o == "success", "crash_vehicle": o == "crash", "crash_object": False,
+               "out_of_road": False, "timeout": o == "timeout", "steps": 10,
+               "decision_latency": 0.01 if shielded else None} for i, o in enumerate(outcomes)]
+    return {"episodes_detail": detail, **({"override_share": 0.25} if shielded else {})}
+
+
+def test_a_shielded_sweeps_trained_cells_join_as_agents_with_a_mean_and_the_rest_is_kept(bench, tmp_path, capsys):
+    """``--from-sweep``: each trained cell with both evaluations is a ``<method>-<mentor>-s<seed>`` row read from its
+    files (nothing is evaluated), the seeds get a mean row; a cell without its shielded evaluation, or evaluated on
+    other scenes, is left out and said; the saved policies of the same scenes stay."""
+    sweep = tmp_path / "sweep"
+    cells = {"pe-rlhf__professional__s0": (["success", "crash"], ["success", "timeout"]),
+             "pe-rlhf__professional__s1": (["success", "success"], ["success", "success"]),
+             "pe-rlhf__professional__s2": (["crash", "crash"], None),
+             "pvp__professional__s0": (["success"], ["success"]),
+             "idm-mobil__s0": (["success", "timeout"], None)}
+    for name, (alone, shielded) in cells.items():
+        (sweep / name).mkdir(parents=True)
+        method, *rest = name.split("__")
+        info = {"method": method, "mentor": rest[0] if len(rest) == 2 else "-", "seed": int(name[-1]),
+                "recipe": "evaluate" if method == "idm-mobil" else "pe_rlhf"}
+        (sweep / name / "cell.json").write_text(json.dumps(info))
+        (sweep / name / "final_eval.json").write_text(json.dumps(_evaluation(alone, False)))
+        if shielded:
+            (sweep / name / "shielded_eval.json").write_text(json.dumps(_evaluation(shielded, True)))
+    face = {"success": 0.5, "violation": 0.0, "scene_seeds": [0, 1]}
+    out = tmp_path / "summary.json"
+    out.write_text(json.dumps({"random": {"alone": face, "shielded": {**face, "override_share": 0.1}}}))
+    results = bench.main(["--scenes", "0-1", "--policies", "--no-floor", "--resume", "--json", str(out),
+                          "--from-sweep", str(sweep)])
+    printed = capsys.readouterr().out
+    assert "left out pe-rlhf__professional__s2: no shielded_eval.json" in printed
+    assert "left out pvp__professional__s0: evaluated on other scenes" in printed and "idm-mobil" not in printed
+    agents = sorted(k for k in results if k.startswith("pe-rlhf"))
+    assert agents == ["pe-rlhf-professional-mean", "pe-rlhf-professional-s0", "pe-rlhf-professional-s1"]
+    s0 = results["pe-rlhf-professional-s0"]
+    assert (s0["alone"]["success"], s0["alone"]["violation"]) == (0.5, 0.5)
+    assert (s0["shielded"]["success"], s0["shielded"]["violation"], s0["shielded"]["override_share"]) == (0.5, 0, 0.25)
+    mean = results["pe-rlhf-professional-mean"]
+    assert mean["alone"]["success"] == pytest.approx(0.75) and mean["shielded"]["violation"] == 0.0
+    assert "random" in results and "pvp-professional-s0" not in results and "idm-mobil-s0" not in results
+    saved = json.loads(out.read_text())
+    assert saved["pe-rlhf-professional-s1"]["shielded"]["success"] == 1.0 and "random" in saved
+    assert saved["decisions_per_second"] == pytest.approx(100.0)  # 10 ms a decision in the cells' evaluations
