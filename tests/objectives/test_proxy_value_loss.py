@@ -287,3 +287,44 @@ def test_values_propagate_down_a_chain_in_order():
     # its +1 label (weight 1: the mean over the one takeover row) and its terminal TD target 0 (weight 1/4: the mean
     # over the four rows) share the row: (1 * 1 + 0.25 * 0) / 1.25
     assert q_exec[3] == pytest.approx(0.8, abs=0.05)
+
+
+def test_rows_before_a_takeover_are_marked_and_left_out_of_td_without_td_into_takeover():
+    """``mark_takeover_entries`` flags the agent row whose next row starts a takeover; ``td_into_takeover=False``
+    leaves exactly those rows out of the TD term (closed form), the proxy term unchanged; the key is renamable."""
+    from pe_rlhf.objectives import mark_takeover_entries
+
+    td = batch()  # takeover (1, 1, 0, 0, 0, 1), terminated at row 3
+    td["next", "done"] = td["next", "terminated"].clone()
+    follows = mark_takeover_entries(td)["next", "takeover_follows"].squeeze(-1)
+    assert follows.tolist() == [False, False, False, False, True, False]
+    cut, plain = hand_built_loss(td_into_takeover=False)(td), hand_built_loss()(td)
+    loss = hand_built_loss()
+    with torch.no_grad():
+        q = q_by_hand(loss.qvalue_network_params, td["observation"], td["next", "behavior_action"])
+        next_q = q_by_hand(loss.target_qvalue_network_params, td["next", "observation"],
+                           torch.tensor([0.6, 0.1]).expand(6, 2)).min(0)[0]
+        target = 0.99 * (1 - td["next", "terminated"].squeeze(-1).float()) * next_q
+        expected = (q - target)[:, ~follows].pow(2).mean(-1).sum()
+    torch.testing.assert_close(cut["td_loss"], expected)
+    assert cut["td_loss"] != plain["td_loss"]
+    torch.testing.assert_close(cut["proxy_loss"], plain["proxy_loss"])
+    assert ("next", "takeover_follows") in hand_built_loss(td_into_takeover=False).in_keys
+    assert ("next", "takeover_follows") not in loss.in_keys  # the default reads no such key
+    renamed = hand_built_loss(td_into_takeover=False)
+    renamed.set_keys(takeover_follows=("next", "before_takeover"))
+    td.rename_key_(("next", "takeover_follows"), ("next", "before_takeover"))
+    torch.testing.assert_close(renamed(td)["td_loss"], expected)
+    with pytest.raises(ValueError, match="td_into_takeover='no' is invalid"):
+        hand_built_loss(td_into_takeover="no")
+
+
+def test_takeover_entries_stop_at_an_episodes_end_and_read_time_as_the_last_batch_dim():
+    from pe_rlhf.objectives import mark_takeover_entries
+
+    taken = torch.tensor([[0, 1, 1, 0], [0, 0, 0, 1]], dtype=torch.bool).unsqueeze(-1)
+    done = torch.tensor([[0, 0, 0, 0], [0, 0, 1, 0]], dtype=torch.bool).unsqueeze(-1)  # env 1: a new episode at 3
+    td = TensorDict({"next": {"intervention": taken, "done": done}}, batch_size=[2, 4])
+    follows = mark_takeover_entries(td)["next", "takeover_follows"]
+    assert follows.shape == (2, 4, 1) and follows.dtype == torch.bool
+    assert follows.squeeze(-1).tolist() == [[True, False, False, False], [False, False, False, False]]

@@ -21,7 +21,12 @@ returns:
 - ``loss_td``: zero-reward TD on every row at the executed action, twin critics, TD3's target
   ``y = gamma * (1 - terminated) * min_k Q'_k(s', clip(pi'(s') + clip(N(0, sigma), -c, c), -1, 1))``,
   ``sum_k mean (Q_k(s, a_exec) - y)^2``. With ``mask_td_at_takeover_start`` the rows where a takeover starts
-  are left out of it (PVP's mask: that step's value is the proxy label alone).
+  are left out of it (PVP's mask: that step's value is the proxy label alone). With ``td_into_takeover=False`` the
+  agent's rows whose next step is a takeover's first (``takeover_follows``, :func:`mark_takeover_entries`) are left
+  out of it too: their target would be the value of the agent's own proposal at the takeover, ``-B``, and TD would
+  carry it back along the steps that led there, to ``-gamma^k B``, so that any road towards where a mentor steps
+  in is worth less than standing still (an agent free of takeovers is worth 0). PVP's released code has no such
+  path: it bootstraps a row from the next row of its own buffer, where the agent drives again.
 - ``loss_actor``: a deterministic actor that maximises the first critic, ``-mean Q_1(s, pi(s))`` (critic
   parameters detached), plus ``bc_weight * mean_{I=1} ||pi(s) - a_exec||^2`` (PVP4Real's behaviour cloning on
   takeover rows). The actor's term is computed on every ``policy_delay``-th call (TD3's delay: calls
@@ -36,7 +41,8 @@ returns:
 Default keys (``set_keys`` renames): root ``observation`` (through the networks' in_keys) and ``action`` = the
 agent's proposal ``a_AV`` float ``(..., A)``; under ``next``: ``behavior_action`` ``(..., A)``, ``intervention`` and
 ``intervention_start`` bool ``(..., 1)``, ``terminated`` bool ``(..., 1)`` and ``observation``; with
-``label_physics_action=False`` also ``mentor_selected`` bool ``(..., 1)``. The reward is never read. Any batch shape (flattened to one dim); the input tensordict is read, never written.
+``label_physics_action=False`` also ``mentor_selected`` bool ``(..., 1)``, with ``td_into_takeover=False``
+``takeover_follows`` bool ``(..., 1)``. The reward is never read. Any batch shape (flattened to one dim); the input tensordict is read, never written.
 """
 
 from __future__ import annotations
@@ -78,6 +84,8 @@ class ProxyValueLoss(KeyedLoss, LossModule):
             code: over the whole batch, scaled by the takeover share, and TD weighted 0.5; module docstring).
         label_physics_action: False: on takeover rows where physics was executed (``mentor_selected`` false) the
             executed action gets no ``+B`` label (the agent's proposal keeps its ``-B``).
+        td_into_takeover: False: the agent's rows followed by a takeover's first step (``takeover_follows``) are
+            left out of the TD term, so the ``-B`` of a takeover is not carried back to the steps before it.
     """
 
     @dataclass
@@ -87,6 +95,7 @@ class ProxyValueLoss(KeyedLoss, LossModule):
         state_action_value: NestedKey = "state_action_value"
         terminated: NestedKey = "terminated"
         mentor_selected: NestedKey = ("next", "mentor_selected")
+        takeover_follows: NestedKey = ("next", "takeover_follows")
 
     default_keys = _AcceptedKeys
     tensor_keys: _AcceptedKeys
@@ -103,7 +112,8 @@ class ProxyValueLoss(KeyedLoss, LossModule):
                  q_value_bound: float = 1.0, gamma: float = 0.99, num_qvalue_nets: int = 2,
                  target_noise: float = 0.2, target_noise_clip: float = 0.5, policy_delay: int = 2,
                  bc_weight: float = 0.0, mask_td_at_takeover_start: bool = False,
-                 proxy_reduction: str = "takeover_rows", label_physics_action: bool = True) -> None:
+                 proxy_reduction: str = "takeover_rows", label_physics_action: bool = True,
+                 td_into_takeover: bool = True) -> None:
         super().__init__()
         if proxy_reduction not in PROXY_REDUCTIONS:
             raise ValueError(f"ProxyValueLoss proxy_reduction={proxy_reduction!r} is invalid: allowed "
@@ -112,6 +122,9 @@ class ProxyValueLoss(KeyedLoss, LossModule):
         if not isinstance(label_physics_action, bool):
             raise ValueError(f"ProxyValueLoss label_physics_action={label_physics_action!r} is invalid: true or false")
         self.label_physics_action = label_physics_action
+        if not isinstance(td_into_takeover, bool):
+            raise ValueError(f"ProxyValueLoss td_into_takeover={td_into_takeover!r} is invalid: true or false")
+        self.td_into_takeover = td_into_takeover
         for name, value, low in (("q_value_bound", q_value_bound, 0.0), ("target_noise", target_noise, 0.0),
                                  ("target_noise_clip", target_noise_clip, 0.0), ("bc_weight", bc_weight, 0.0)):
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) \
@@ -137,7 +150,8 @@ class ProxyValueLoss(KeyedLoss, LossModule):
         keys = self.tensor_keys
         states = self.state_keys
         flags = [keys.intervention, keys.intervention_start] + ([] if self.label_physics_action
-                                                               else [keys.mentor_selected])
+                                                               else [keys.mentor_selected]) \
+            + ([] if self.td_into_takeover else [keys.takeover_follows])
         return [keys.action, keys.behavior_action, *flags, *next_keys([keys.terminated]), *self.actor_network.in_keys,
                 *states, *next_keys(self.actor_network.in_keys), *next_keys(states)]
 
@@ -202,6 +216,8 @@ class ProxyValueLoss(KeyedLoss, LossModule):
         td_rows = torch.ones_like(takeover)
         if self.mask_td_at_takeover_start:
             td_rows = ~tensordict.get(keys.intervention_start).reshape(-1).bool()
+        if not self.td_into_takeover:
+            td_rows = td_rows & ~tensordict.get(keys.takeover_follows).reshape(-1).bool()
         td_error = (q_exec - target)[:, td_rows]
         loss_td = td_error.pow(2).mean(-1).sum(0) if td_rows.any() else q_all.new_zeros(())
         zero = q_all.new_zeros(())
@@ -247,3 +263,18 @@ class ProxyValueLoss(KeyedLoss, LossModule):
             "intervention_rate": takeover.float().mean(),
             "actor_saturation": saturation,
         }, batch_size=[])
+
+
+def mark_takeover_entries(batch: TensorDictBase, *, intervention: NestedKey = ("next", "intervention"),
+                          done: NestedKey = ("next", "done"),
+                          out: NestedKey = ("next", "takeover_follows")) -> TensorDictBase:
+    """Write ``out`` (bool ``(..., T, 1)``) on a collected batch of consecutive steps, time its last batch dim:
+    true on a row without a takeover whose next row, in the same episode, is one (the step before a mentor steps
+    in). The batch's last row reads false (its next step is in the next batch). What
+    ``ProxyValueLoss(td_into_takeover=False)`` reads; the batch is written in place and returned."""
+    taken = batch.get(intervention).bool()
+    ended = batch.get(done).bool()
+    follows = torch.zeros_like(taken)
+    follows[..., :-1, :] = taken[..., 1:, :] & ~taken[..., :-1, :] & ~ended[..., :-1, :]
+    batch.set(out, follows)
+    return batch

@@ -216,6 +216,9 @@ class ProxyValueLossConfig(LossCommon):
     # false: on takeover rows where physics was executed only the agent's proposal is labelled (-B), physics' action
     # gets TD alone (its braking is a fallback, not a demonstration)
     label_physics_action: bool = knob(True, rule_bool)
+    # false: the agent's rows followed by a takeover's first step are left out of TD, so the takeover's -B is not
+    # carried back to the steps that led there (PVP's released code bootstraps them from where the agent drives again)
+    td_into_takeover: bool = knob(True, rule_bool)
 
 
 # loss.objective -> its group's settings
