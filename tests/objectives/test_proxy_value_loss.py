@@ -328,3 +328,47 @@ def test_takeover_entries_stop_at_an_episodes_end_and_read_time_as_the_last_batc
     follows = mark_takeover_entries(td)["next", "takeover_follows"]
     assert follows.shape == (2, 4, 1) and follows.dtype == torch.bool
     assert follows.squeeze(-1).tolist() == [[True, False, False, False], [False, False, False, False]]
+
+
+def test_inverted_gradients_scale_by_the_room_to_the_bound_a_step_moves_towards():
+    from pe_rlhf.objectives.proxy_value import InvertedGradientTanh
+
+    pre = torch.tensor([-10.0, -10.0, 0.0, 0.5], requires_grad=True)
+    action = InvertedGradientTanh.apply(pre)
+    torch.testing.assert_close(action, torch.tanh(pre.detach()))
+    grad = torch.tensor([-1.0, 1.0, -2.0, 3.0])  # descent moves entry 0 and 2 up, 1 and 3 down
+    action.backward(grad)
+    a = torch.tanh(pre.detach())
+    expected = torch.stack([-1.0 * (1 - a[0]) / 2, 1.0 * (1 + a[1]) / 2, -2.0 * (1 - a[2]) / 2, 3.0 * (1 + a[3]) / 2])
+    torch.testing.assert_close(pre.grad, expected)
+    assert pre.grad[0] == pytest.approx(-1.0) and pre.grad[1] == pytest.approx(0.0, abs=1e-6)  # full pull back, no push
+
+
+def test_inverted_gradients_pull_a_saturated_actor_back_where_the_tanh_cannot():
+    """An actor saturated at full brake (throttle pre-activation -6) under a critic that values throttle: a few plain
+    gradient steps with inverted gradients bring the throttle up; through the tanh's derivative (about 2e-5 there) it
+    does not move."""
+    throttles = {}
+    for inverting in (False, True):
+        torch.manual_seed(0)
+        actor = make_deterministic_actor(OBS, hidden=(8,))
+        with torch.no_grad():
+            last = [m for m in actor.modules() if isinstance(m, nn.Linear)][-1]
+            last.weight.zero_()
+            last.bias.copy_(torch.tensor([0.0, -6.0]))
+        qvalue = TensorDictModule(LinearQ(), in_keys=["observation", "action"], out_keys=["state_action_value"])
+        loss = ProxyValueLoss(actor, qvalue, policy_delay=1, inverting_gradients=inverting)
+        with torch.no_grad():
+            loss.qvalue_network_params["module"]["w_a"].copy_(torch.tensor([[0.0, 1.0], [0.0, 1.0]]))
+        optim = torch.optim.SGD(list(loss.actor_network_params.values(True, True)), lr=0.5)  # the gradient's size
+        td = batch()
+        for _ in range(20):
+            optim.zero_grad()
+            loss(td)["loss_actor"].backward()
+            optim.step()
+        with torch.no_grad(), loss.actor_network_params.to_module(loss.actor_network):
+            throttles[inverting] = float(loss.actor_network(td.select("observation").clone())["action"][:, 1].mean())
+    assert throttles[False] < -0.99 and throttles[True] > -0.9
+    with pytest.raises(ValueError, match="inverting_gradients=True needs an actor that writes 'action_preactivation'"):
+        ProxyValueLoss(TensorDictModule(ConstantAction([0.0, 0.0]), in_keys=["observation"], out_keys=["action"]),
+                       qvalue, inverting_gradients=True)

@@ -31,7 +31,11 @@ returns:
   parameters detached), plus ``bc_weight * mean_{I=1} ||pi(s) - a_exec||^2`` (PVP4Real's behaviour cloning on
   takeover rows). The actor's term is computed on every ``policy_delay``-th call (TD3's delay: calls
   ``policy_delay``, ``2 * policy_delay``, ...); on the calls in between ``loss_actor`` is a constant 0 and the
-  actor is not evaluated. The call count is a buffer, saved with the module's state.
+  actor is not evaluated. With ``inverting_gradients`` the actor's action in this term is ``tanh`` of its
+  ``action_preactivation`` with Hausknecht and Stone's inverted gradients (2016) in place of the tanh's derivative:
+  the gradient that moves an action entry towards a bound is scaled by the room left to it, ``(1 - a) / 2`` or
+  ``(1 + a) / 2``, so an actor saturated at one bound (the tanh's derivative 0 there) is still pulled back when the
+  critic's slope turns, and never pushed past it. The call count is a buffer, saved with the module's state.
 - diagnostics (detached): ``td_loss``, ``proxy_loss``, ``bc_loss``, ``q_behavior`` (mean ``Q`` at the executed
   action on takeover rows), ``q_agent`` (at the agent's proposal on takeover rows), ``q_free`` (at the executed
   action on rows without a takeover), ``td_error`` (mean absolute), ``intervention_rate``, ``actor_saturation``
@@ -61,6 +65,25 @@ from pe_rlhf.objectives.contract import KeyedLoss, TakeoverKeys, next_keys
 
 
 PROXY_REDUCTIONS = ("takeover_rows", "batch")  # ProxyValueLoss.proxy_reduction
+PREACTIVATION = "action_preactivation"  # what make_deterministic_actor writes beside its action
+
+
+class InvertedGradientTanh(torch.autograd.Function):
+    """``tanh(u)`` forward; backward, the incoming gradient ``g`` (of a loss to minimise, with respect to the action
+    ``a``) scaled by the room between ``a`` and the bound that a descent step moves it towards:
+    ``g * (1 - a) / 2`` where ``g < 0`` (``a`` goes up), ``g * (1 + a) / 2`` elsewhere (Hausknecht and Stone,
+    "Deep reinforcement learning in parameterized action space", 2016), in place of the tanh's ``1 - a^2``."""
+
+    @staticmethod
+    def forward(ctx, preactivation: torch.Tensor) -> torch.Tensor:
+        action = torch.tanh(preactivation)
+        ctx.save_for_backward(action)
+        return action
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor) -> torch.Tensor:
+        (action,) = ctx.saved_tensors
+        return grad * torch.where(grad < 0, 1.0 - action, 1.0 + action) / 2
 
 
 class ProxyValueLoss(KeyedLoss, LossModule):
@@ -86,6 +109,8 @@ class ProxyValueLoss(KeyedLoss, LossModule):
             executed action gets no ``+B`` label (the agent's proposal keeps its ``-B``).
         td_into_takeover: False: the agent's rows followed by a takeover's first step (``takeover_follows``) are
             left out of the TD term, so the ``-B`` of a takeover is not carried back to the steps before it.
+        inverting_gradients: the actor's term passes its gradient through inverted gradients instead of the tanh's
+            derivative (module docstring); the actor must write ``action_preactivation``.
     """
 
     @dataclass
@@ -113,7 +138,7 @@ class ProxyValueLoss(KeyedLoss, LossModule):
                  target_noise: float = 0.2, target_noise_clip: float = 0.5, policy_delay: int = 2,
                  bc_weight: float = 0.0, mask_td_at_takeover_start: bool = False,
                  proxy_reduction: str = "takeover_rows", label_physics_action: bool = True,
-                 td_into_takeover: bool = True) -> None:
+                 td_into_takeover: bool = True, inverting_gradients: bool = False) -> None:
         super().__init__()
         if proxy_reduction not in PROXY_REDUCTIONS:
             raise ValueError(f"ProxyValueLoss proxy_reduction={proxy_reduction!r} is invalid: allowed "
@@ -125,6 +150,12 @@ class ProxyValueLoss(KeyedLoss, LossModule):
         if not isinstance(td_into_takeover, bool):
             raise ValueError(f"ProxyValueLoss td_into_takeover={td_into_takeover!r} is invalid: true or false")
         self.td_into_takeover = td_into_takeover
+        if not isinstance(inverting_gradients, bool):
+            raise ValueError(f"ProxyValueLoss inverting_gradients={inverting_gradients!r} is invalid: true or false")
+        if inverting_gradients and PREACTIVATION not in actor_network.out_keys:
+            raise ValueError(f"ProxyValueLoss inverting_gradients=True needs an actor that writes {PREACTIVATION!r} "
+                             f"(pe_rlhf.modules.make_deterministic_actor); this one writes {actor_network.out_keys}")
+        self.inverting_gradients = inverting_gradients
         for name, value, low in (("q_value_bound", q_value_bound, 0.0), ("target_noise", target_noise, 0.0),
                                  ("target_noise_clip", target_noise_clip, 0.0), ("bc_weight", bc_weight, 0.0)):
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) \
@@ -177,11 +208,13 @@ class ProxyValueLoss(KeyedLoss, LossModule):
         td.set(self.policy_action_key, action)
         return self._vmap_q(td, params).get(self.tensor_keys.state_action_value).squeeze(-1)
 
-    def _act(self, params, tensordict: TensorDictBase) -> torch.Tensor:
-        """The deterministic actor's action under ``params`` (the input is not written)."""
+    def _act(self, params, tensordict: TensorDictBase, inverted: bool = False) -> torch.Tensor:
+        """The deterministic actor's action under ``params`` (the input is not written); ``inverted``: the same
+        values, their gradient through :class:`InvertedGradientTanh` from the pre-activation."""
         td = tensordict.select(*self.actor_network.in_keys, strict=False)
         with params.to_module(self.actor_network):
-            return self.actor_network(td).get(self.policy_action_key)
+            out = self.actor_network(td)
+        return InvertedGradientTanh.apply(out.get(PREACTIVATION)) if inverted else out.get(self.policy_action_key)
 
     def td_target(self, tensordict: TensorDictBase) -> torch.Tensor:
         """``(rows,)``: ``gamma * (1 - terminated) * min_k Q'_k(s', smoothed pi'(s'))``, zero reward, no grad."""
@@ -240,7 +273,7 @@ class ProxyValueLoss(KeyedLoss, LossModule):
 
         loss_actor, loss_bc, saturation = zero, zero, zero
         if (int(self.calls) + 1) % self.policy_delay == 0:  # after every policy_delay-th critic step
-            action = self._act(self.actor_network_params, tensordict)
+            action = self._act(self.actor_network_params, tensordict, inverted=self.inverting_gradients)
             q_first = self._q(self.qvalue_network_params.detach()[:1], tensordict, action)[0]
             loss_actor = -q_first.mean()
             saturation = (action.detach().abs() > 0.99).float().mean()

@@ -219,6 +219,9 @@ class ProxyValueLossConfig(LossCommon):
     # false: the agent's rows followed by a takeover's first step are left out of TD, so the takeover's -B is not
     # carried back to the steps that led there (PVP's released code bootstraps them from where the agent drives again)
     td_into_takeover: bool = knob(True, rule_bool)
+    # true: the actor's gradient through inverted gradients (scaled by the room to the bound it moves towards) instead
+    # of the tanh's derivative, so a saturated actor is pulled back when the critic's slope turns
+    inverting_gradients: bool = knob(False, rule_bool)
 
 
 # loss.objective -> its group's settings

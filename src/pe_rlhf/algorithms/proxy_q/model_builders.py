@@ -35,7 +35,8 @@ def build_loss(cfg, actor) -> tuple[PERLHFLoss | ProxyValueLoss, ForeachSoftUpda
                               mask_td_at_takeover_start=bool(c.mask_td_at_takeover_start),
                               proxy_reduction=str(c.proxy_reduction),
                               label_physics_action=bool(c.label_physics_action),
-                              td_into_takeover=bool(c.td_into_takeover))
+                              td_into_takeover=bool(c.td_into_takeover),
+                              inverting_gradients=bool(c.inverting_gradients))
         return loss, ForeachSoftUpdate(loss, tau=float(c.tau))
     target_entropy = cfg.loss.target_entropy
     d = cfg.disturbance  # HAIM-DRL's group: its weight and critics only with enabled
