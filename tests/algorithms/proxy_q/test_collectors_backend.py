@@ -96,9 +96,11 @@ def test_fitted_ensemble_weights_reach_the_workers(multisync_run):
     batches = multisync_run["batches"]
     chosen, takeovers = _mentor_chosen(batches[1])
     assert takeovers > 0 and chosen == takeovers  # finite ensemble, epsilon -1e9: the mentor is trusted
-    for batch in batches[2:]:  # the main process's ensemble is NaN now: physics is chosen
-        chosen, takeovers = _mentor_chosen(batch)
-        assert takeovers > 0 and chosen == 0
+    # the main process's ensemble is NaN now: physics is chosen at every later takeover. Over the later batches
+    # together: which of them hold a takeover depends on when the workers took the synced actor (a loaded machine
+    # gave one without any)
+    later = [_mentor_chosen(batch) for batch in batches[2:]]
+    assert sum(t for _, t in later) > 0 and sum(c for c, _ in later) == 0
 
 
 def test_policy_weights_reach_the_workers_after_sync(multisync_run):
