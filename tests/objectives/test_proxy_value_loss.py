@@ -80,6 +80,17 @@ def q_by_hand(params, obs, action):
     return (obs @ p["w_s"].T + action @ p["w_a"].T + p["b"]).T
 
 
+def td_errors_by_hand(td) -> torch.Tensor:
+    """``(copies, rows)``: the hand-built critics' TD errors at the executed action (``gamma`` 0.99, no target
+    noise, the target actor's constant (0.6, 0.1))."""
+    loss = hand_built_loss()
+    with torch.no_grad():
+        q = q_by_hand(loss.qvalue_network_params, td["observation"], td["next", "behavior_action"])
+        next_q = q_by_hand(loss.target_qvalue_network_params, td["next", "observation"],
+                           torch.tensor([0.6, 0.1]).expand(len(td), 2)).min(0)[0]
+        return q - 0.99 * (1 - td["next", "terminated"].squeeze(-1).float()) * next_q
+
+
 # --------------------------------------------------------------------------- closed-form terms
 
 
@@ -117,13 +128,7 @@ def test_the_mask_leaves_takeover_start_rows_out_of_the_td_term():
     td = batch()
     start = td["next", "intervention_start"].squeeze(-1)
     masked, plain = hand_built_loss(mask_td_at_takeover_start=True)(td), hand_built_loss()(td)
-    loss = hand_built_loss()
-    with torch.no_grad():
-        q = q_by_hand(loss.qvalue_network_params, td["observation"], td["next", "behavior_action"])
-        next_q = q_by_hand(loss.target_qvalue_network_params, td["next", "observation"],
-                           torch.tensor([0.6, 0.1]).expand(6, 2)).min(0)[0]
-        target = 0.99 * (1 - td["next", "terminated"].squeeze(-1).float()) * next_q
-        expected = (q - target)[:, ~start].pow(2).mean(-1).sum()
+    expected = td_errors_by_hand(td)[:, ~start].pow(2).mean(-1).sum()
     torch.testing.assert_close(masked["td_loss"], expected)
     assert masked["td_loss"] != plain["td_loss"]
     torch.testing.assert_close(masked["proxy_loss"], plain["proxy_loss"])
@@ -300,12 +305,7 @@ def test_rows_before_a_takeover_are_marked_and_left_out_of_td_without_td_into_ta
     assert follows.tolist() == [False, False, False, False, True, False]
     cut, plain = hand_built_loss(td_into_takeover=False)(td), hand_built_loss()(td)
     loss = hand_built_loss()
-    with torch.no_grad():
-        q = q_by_hand(loss.qvalue_network_params, td["observation"], td["next", "behavior_action"])
-        next_q = q_by_hand(loss.target_qvalue_network_params, td["next", "observation"],
-                           torch.tensor([0.6, 0.1]).expand(6, 2)).min(0)[0]
-        target = 0.99 * (1 - td["next", "terminated"].squeeze(-1).float()) * next_q
-        expected = (q - target)[:, ~follows].pow(2).mean(-1).sum()
+    expected = td_errors_by_hand(td)[:, ~follows].pow(2).mean(-1).sum()
     torch.testing.assert_close(cut["td_loss"], expected)
     assert cut["td_loss"] != plain["td_loss"]
     torch.testing.assert_close(cut["proxy_loss"], plain["proxy_loss"])
