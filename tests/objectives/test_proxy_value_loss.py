@@ -159,33 +159,6 @@ def test_the_batch_reduction_is_pvps_released_loss():
         hand_built_loss(proxy_reduction="rows")
 
 
-def test_rows_physics_drove_label_only_the_proposal_without_label_physics_action():
-    """``label_physics_action=False``: a takeover row whose executed action was physics' (``mentor_selected``
-    false) keeps the proposal's ``-B`` and loses the executed action's ``+B``; the mentor's rows keep both; TD is
-    unchanged. The default ignores ``mentor_selected``."""
-    td = batch()  # takeover rows 0, 1 and 5
-    td["next", "mentor_selected"] = torch.tensor([1, 0, 0, 0, 0, 0], dtype=torch.bool).unsqueeze(-1)
-    takeover = td["next", "intervention"].squeeze(-1)
-    mentor_rows = torch.tensor([True, False, False, False, False, False])
-    loss = hand_built_loss(q_value_bound=2.0, label_physics_action=False)
-    out = loss(td)
-    with torch.no_grad():
-        q = q_by_hand(loss.qvalue_network_params, td["observation"], td["next", "behavior_action"])
-        q_agent = q_by_hand(loss.qvalue_network_params, td["observation"], td["action"])
-        proxy = ((q[:, mentor_rows] - 2.0).pow(2).mean(-1) + (q_agent[:, takeover] + 2.0).pow(2).mean(-1)).sum()
-    torch.testing.assert_close(out["proxy_loss"], proxy)
-    default = hand_built_loss(q_value_bound=2.0)(td)
-    torch.testing.assert_close(out["td_loss"], default["td_loss"])
-    assert out["proxy_loss"] < default["proxy_loss"]  # two +B terms fewer, from the same critics
-    assert ("next", "mentor_selected") in loss.in_keys and ("next", "mentor_selected") not in hand_built_loss().in_keys
-    batch_wide = hand_built_loss(q_value_bound=2.0, label_physics_action=False, proxy_reduction="batch")(td)
-    exec_term = ((q - 2.0).pow(2) * ~(takeover & ~mentor_rows)).sum(-1) / 6
-    torch.testing.assert_close(batch_wide["proxy_loss"],
-                               takeover.float().mean() * (exec_term + (q_agent + 2.0).pow(2).mean(-1)).sum())
-    with pytest.raises(ValueError, match="label_physics_action='no' is invalid"):
-        hand_built_loss(label_physics_action="no")
-
-
 def test_target_noise_is_clipped_and_the_target_action_stays_in_bounds():
     loss = hand_built_loss(target_noise=10.0, target_noise_clip=0.3)
     td = batch()

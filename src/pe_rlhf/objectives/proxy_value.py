@@ -8,12 +8,8 @@ returns:
 - ``loss_proxy``: on takeover rows only (``I = 1``), the executed action is labelled ``+B`` and the agent's
   proposal ``-B``, ``B = q_value_bound``:
   ``sum_k mean_{I=1} [(Q_k(s, a_exec) - B)^2 + (Q_k(s, a_AV) - (-B))^2]``; 0 on a batch without a takeover.
-  During a PE-RLHF takeover the executed action is the hybrid's (mentor or physics): by default the loss need not
-  know which. With ``label_physics_action=False`` it reads ``mentor_selected``: on takeover rows where physics was
-  executed (physics' action or its braking recovery, a safety fallback rather than a demonstration) only the
-  agent's proposal is labelled (``-B``); the executed action gets TD alone. Physics' executed actions brake: in
-  PE-RLHF's replay buffers they are the stops behind obstacles the mentor was steering around
-  (docs/experiments/learner.md).
+  During a PE-RLHF takeover the executed action is the hybrid's (mentor or physics): the loss need not know which
+  (leaving physics' executed actions unlabelled was measured twice and lost: docs/experiments/learner.md).
   ``proxy_reduction="batch"`` is PVP's released code instead (``pvp_td3.py``): both squared errors averaged over the
   *whole* batch and scaled by its share of takeover rows, so a row without a takeover, where ``a_AV = a_exec``, is
   pulled to ``+B`` and ``-B`` at once, i.e. towards 0; and ``loss_td`` weighted 0.5:
@@ -45,8 +41,7 @@ returns:
 Default keys (``set_keys`` renames): root ``observation`` (through the networks' in_keys) and ``action`` = the
 agent's proposal ``a_AV`` float ``(..., A)``; under ``next``: ``behavior_action`` ``(..., A)``, ``intervention`` and
 ``intervention_start`` bool ``(..., 1)``, ``terminated`` bool ``(..., 1)`` and ``observation``; with
-``label_physics_action=False`` also ``mentor_selected`` bool ``(..., 1)``, with ``td_into_takeover=False``
-``takeover_follows`` bool ``(..., 1)``. The reward is never read. Any batch shape (flattened to one dim); the input tensordict is read, never written.
+``td_into_takeover=False`` also ``takeover_follows`` bool ``(..., 1)``. The reward is never read. Any batch shape (flattened to one dim); the input tensordict is read, never written.
 """
 
 from __future__ import annotations
@@ -105,8 +100,6 @@ class ProxyValueLoss(KeyedLoss, LossModule):
         mask_td_at_takeover_start: leave takeover-start rows out of the TD term (PVP's mask).
         proxy_reduction: ``"takeover_rows"`` (the proxy labels on takeover rows only) or ``"batch"`` (PVP's released
             code: over the whole batch, scaled by the takeover share, and TD weighted 0.5; module docstring).
-        label_physics_action: False: on takeover rows where physics was executed (``mentor_selected`` false) the
-            executed action gets no ``+B`` label (the agent's proposal keeps its ``-B``).
         td_into_takeover: False: the agent's rows followed by a takeover's first step (``takeover_follows``) are
             left out of the TD term, so the ``-B`` of a takeover is not carried back to the steps before it.
         inverting_gradients: the actor's term passes its gradient through inverted gradients instead of the tanh's
@@ -119,7 +112,6 @@ class ProxyValueLoss(KeyedLoss, LossModule):
 
         state_action_value: NestedKey = "state_action_value"
         terminated: NestedKey = "terminated"
-        mentor_selected: NestedKey = ("next", "mentor_selected")
         takeover_follows: NestedKey = ("next", "takeover_follows")
 
     default_keys = _AcceptedKeys
@@ -137,16 +129,13 @@ class ProxyValueLoss(KeyedLoss, LossModule):
                  q_value_bound: float = 1.0, gamma: float = 0.99, num_qvalue_nets: int = 2,
                  target_noise: float = 0.2, target_noise_clip: float = 0.5, policy_delay: int = 2,
                  bc_weight: float = 0.0, mask_td_at_takeover_start: bool = False,
-                 proxy_reduction: str = "takeover_rows", label_physics_action: bool = True,
-                 td_into_takeover: bool = True, inverting_gradients: bool = False) -> None:
+                 proxy_reduction: str = "takeover_rows", td_into_takeover: bool = True,
+                 inverting_gradients: bool = False) -> None:
         super().__init__()
         if proxy_reduction not in PROXY_REDUCTIONS:
             raise ValueError(f"ProxyValueLoss proxy_reduction={proxy_reduction!r} is invalid: allowed "
                              f"{list(PROXY_REDUCTIONS)}")
         self.proxy_reduction = proxy_reduction
-        if not isinstance(label_physics_action, bool):
-            raise ValueError(f"ProxyValueLoss label_physics_action={label_physics_action!r} is invalid: true or false")
-        self.label_physics_action = label_physics_action
         if not isinstance(td_into_takeover, bool):
             raise ValueError(f"ProxyValueLoss td_into_takeover={td_into_takeover!r} is invalid: true or false")
         self.td_into_takeover = td_into_takeover
@@ -180,9 +169,8 @@ class ProxyValueLoss(KeyedLoss, LossModule):
     def _loss_in_keys(self) -> list[NestedKey]:
         keys = self.tensor_keys
         states = self.state_keys
-        flags = [keys.intervention, keys.intervention_start] + ([] if self.label_physics_action
-                                                               else [keys.mentor_selected]) \
-            + ([] if self.td_into_takeover else [keys.takeover_follows])
+        flags = [keys.intervention, keys.intervention_start] + ([] if self.td_into_takeover
+                                                               else [keys.takeover_follows])
         return [keys.action, keys.behavior_action, *flags, *next_keys([keys.terminated]), *self.actor_network.in_keys,
                 *states, *next_keys(self.actor_network.in_keys), *next_keys(states)]
 
@@ -255,19 +243,13 @@ class ProxyValueLoss(KeyedLoss, LossModule):
         loss_td = td_error.pow(2).mean(-1).sum(0) if td_rows.any() else q_all.new_zeros(())
         zero = q_all.new_zeros(())
         bound = self.q_value_bound
-        # the rows whose executed action is labelled +B: every row the proxy term reads, less physics' rows
-        exec_labelled = torch.ones_like(takeover)
-        if not self.label_physics_action:
-            exec_labelled = ~(takeover & ~tensordict.get(keys.mentor_selected).reshape(-1).bool())
         if self.proxy_reduction == "batch":  # PVP's released code: q_agent holds every row
             loss_td = 0.5 * loss_td
-            exec_term = ((q_exec - bound).pow(2) * exec_labelled).sum(-1) / rows
-            loss_proxy = takeover.float().mean() * (exec_term + (q_agent + bound).pow(2).mean(-1)).sum(0)
+            loss_proxy = takeover.float().mean() * ((q_exec - bound).pow(2).mean(-1)
+                                                    + (q_agent + bound).pow(2).mean(-1)).sum(0)
             q_agent = q_agent[:, takeover]
         elif takeover.any():  # q_agent holds the takeover rows only
-            positive = takeover & exec_labelled
-            exec_term = (q_exec[:, positive] - bound).pow(2).mean(-1) if positive.any() else zero
-            loss_proxy = (exec_term + (q_agent + bound).pow(2).mean(-1)).sum(0)
+            loss_proxy = ((q_exec[:, takeover] - bound).pow(2).mean(-1) + (q_agent + bound).pow(2).mean(-1)).sum(0)
         else:
             loss_proxy = zero
 

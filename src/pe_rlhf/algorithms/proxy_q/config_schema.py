@@ -213,9 +213,6 @@ class ProxyValueLossConfig(LossCommon):
     # takeover_rows: the proxy labels on takeover rows | batch: PVP's released code (over the whole batch, times the
     # takeover share, so agent rows are pulled to 0; TD weighted 0.5)
     proxy_reduction: str = knob("takeover_rows", rule_choice(*PROXY_REDUCTIONS))
-    # false: on takeover rows where physics was executed only the agent's proposal is labelled (-B), physics' action
-    # gets TD alone (its braking is a fallback, not a demonstration)
-    label_physics_action: bool = knob(True, rule_bool)
     # false: the agent's rows followed by a takeover's first step are left out of TD, so the takeover's -B is not
     # carried back to the steps that led there (PVP's released code bootstraps them from where the agent drives again)
     td_into_takeover: bool = knob(True, rule_bool)

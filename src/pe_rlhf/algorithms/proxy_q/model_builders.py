@@ -34,7 +34,6 @@ def build_loss(cfg, actor) -> tuple[PERLHFLoss | ProxyValueLoss, ForeachSoftUpda
                               target_noise=float(c.target_noise), policy_delay=int(c.policy_delay), bc_weight=float(c.bc_weight),
                               mask_td_at_takeover_start=bool(c.mask_td_at_takeover_start),
                               proxy_reduction=str(c.proxy_reduction),
-                              label_physics_action=bool(c.label_physics_action),
                               td_into_takeover=bool(c.td_into_takeover),
                               inverting_gradients=bool(c.inverting_gradients))
         return loss, ForeachSoftUpdate(loss, tau=float(c.tau))
