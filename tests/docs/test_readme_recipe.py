@@ -20,8 +20,7 @@ pytestmark = [pytest.mark.usefixtures("one_thread_module"),
               pytest.mark.filterwarnings("ignore:No target network updater")]
 
 LOSS_SETTINGS = ("q_value_bound", "gamma", "num_qvalue_nets", "target_noise", "target_noise_clip", "policy_delay",
-                 "bc_weight", "mask_td_at_takeover_start", "proxy_reduction", "td_into_takeover",
-                 "inverting_gradients")
+                 "bc_weight", "mask_td_at_takeover_start", "proxy_reduction")
 SELECTOR_SETTINGS = ("epsilon_select", "variance_threshold", "persistence", "reference", "strict_in_danger",
                      "progress_margin", "latch_release_speed")
 

@@ -93,7 +93,6 @@ def test_a_saved_actor_selection_split_other_than_train_is_refused(tmp_path):
     ("logger.wandb_project=x", "logger.project"),
     ("logger.out_dir=runs/x", "--out DIR"),
     ("actor_selection.split=train", "train scenes only"),
-    ("loss.label_physics_action=false", "physics' executed actions are labelled"),
 ])
 def test_a_retired_override_is_refused_in_one_line_saying_what_replaced_it(override, says):
     key, value = override.split("=")
@@ -112,18 +111,3 @@ def test_a_new_run_saves_no_retired_setting(tmp_path):
     saved = yaml.safe_load(path.read_text())
     assert saved["logger"] == {"backends": ["csv"], "project": "pe-rlhf", "log_every": 1}
     assert "seed" not in saved["mentor"] and "split" not in saved["actor_selection"]
-
-
-def test_a_kept_cell_from_before_a_retired_loss_option_loads_where_it_held_the_value_now_always_on():
-    """Issue 41 deleted ``loss.label_physics_action``: a kept cell that held ``true`` (what the loss now always does)
-    loads without it; one that held ``false`` is refused in one line naming the field and the file."""
-    learner = ROOT / "docs" / "results" / "learner" / "learner_physics_labels_c948b19"
-    shipped = learner / "pe-rlhf__professional__s0" / "config.yaml"
-    assert "label_physics_action: true" in shipped.read_text()
-    cfg = load_config(shipped, apply_profile=False)
-    assert "label_physics_action" not in cfg.loss and cfg.loss.objective == "proxy_value" and cfg.seed == 0
-    proposal = learner / "pe-rlhf-proposal-labels__professional__s0" / "config.yaml"
-    with pytest.raises(ConfigError, match=r"^loss\.label_physics_action=False is invalid: no longer a setting \(in "
-                                          r".*\): physics' executed actions are labelled \+B like the mentor's; "
-                                          r"delete the line$"):
-        load_config(proposal, apply_profile=False)

@@ -10,10 +10,10 @@ from pe_rlhf.objectives.cpo import CPOLoss
 from pe_rlhf.objectives.lagrangian import LagrangeMultiplier, PPOLagLoss, SACLagLoss
 from pe_rlhf.objectives.optimizer_steps import ForeachSoftUpdate, make_adam
 from pe_rlhf.objectives.perlhf import PERLHFLoss
-from pe_rlhf.objectives.proxy_value import ProxyValueLoss, mark_takeover_entries
+from pe_rlhf.objectives.proxy_value import ProxyValueLoss
 from pe_rlhf.objectives.q_ensemble_fit import fit_q_ensemble
 from pe_rlhf.objectives.q_ensemble_td import QEnsembleTDLoss
 
 __all__ = ["CPOLoss", "ForeachSoftUpdate", "KeyedLoss", "LagrangeMultiplier", "PERLHFLoss", "PPOLagLoss",
            "ProxyValueLoss", "QEnsembleTDLoss", "SACLagLoss", "UnsupportedValueEstimator", "fit_q_ensemble",
-           "make_adam", "mark_takeover_entries"]
+           "make_adam"]

@@ -17,21 +17,15 @@ returns:
 - ``loss_td``: zero-reward TD on every row at the executed action, twin critics, TD3's target
   ``y = gamma * (1 - terminated) * min_k Q'_k(s', clip(pi'(s') + clip(N(0, sigma), -c, c), -1, 1))``,
   ``sum_k mean (Q_k(s, a_exec) - y)^2``. With ``mask_td_at_takeover_start`` the rows where a takeover starts
-  are left out of it (PVP's mask: that step's value is the proxy label alone). With ``td_into_takeover=False`` the
-  agent's rows whose next step is a takeover's first (``takeover_follows``, :func:`mark_takeover_entries`) are left
-  out of it too: their target would be the value of the agent's own proposal at the takeover, ``-B``, and TD would
-  carry it back along the steps that led there, to ``-gamma^k B``, so that any road towards where a mentor steps
-  in is worth less than standing still (an agent free of takeovers is worth 0). PVP's released code has no such
-  path: it bootstraps a row from the next row of its own buffer, where the agent drives again.
+  are left out of it (PVP's mask: that step's value is the proxy label alone). TD carries a takeover's ``-B`` back
+  along the agent's steps that led to it (``-gamma^k B``); leaving the step before a takeover out of TD was measured
+  and lost (docs/experiments/learner.md).
 - ``loss_actor``: a deterministic actor that maximises the first critic, ``-mean Q_1(s, pi(s))`` (critic
   parameters detached), plus ``bc_weight * mean_{I=1} ||pi(s) - a_exec||^2`` (PVP4Real's behaviour cloning on
   takeover rows). The actor's term is computed on every ``policy_delay``-th call (TD3's delay: calls
   ``policy_delay``, ``2 * policy_delay``, ...); on the calls in between ``loss_actor`` is a constant 0 and the
-  actor is not evaluated. With ``inverting_gradients`` the actor's action in this term is ``tanh`` of its
-  ``action_preactivation`` with Hausknecht and Stone's inverted gradients (2016) in place of the tanh's derivative:
-  the gradient that moves an action entry towards a bound is scaled by the room left to it, ``(1 - a) / 2`` or
-  ``(1 + a) / 2``, so an actor saturated at one bound (the tanh's derivative 0 there) is still pulled back when the
-  critic's slope turns, and never pushed past it. The call count is a buffer, saved with the module's state.
+  actor is not evaluated. The call count is a buffer, saved with the module's state. (Inverted gradients in place
+  of the tanh's derivative were measured and lost: docs/experiments/learner.md.)
 - diagnostics (detached): ``td_loss``, ``proxy_loss``, ``bc_loss``, ``q_behavior`` (mean ``Q`` at the executed
   action on takeover rows), ``q_agent`` (at the agent's proposal on takeover rows), ``q_free`` (at the executed
   action on rows without a takeover), ``td_error`` (mean absolute), ``intervention_rate``, ``actor_saturation``
@@ -40,8 +34,8 @@ returns:
 
 Default keys (``set_keys`` renames): root ``observation`` (through the networks' in_keys) and ``action`` = the
 agent's proposal ``a_AV`` float ``(..., A)``; under ``next``: ``behavior_action`` ``(..., A)``, ``intervention`` and
-``intervention_start`` bool ``(..., 1)``, ``terminated`` bool ``(..., 1)`` and ``observation``; with
-``td_into_takeover=False`` also ``takeover_follows`` bool ``(..., 1)``. The reward is never read. Any batch shape (flattened to one dim); the input tensordict is read, never written.
+``intervention_start`` bool ``(..., 1)``, ``terminated`` bool ``(..., 1)`` and ``observation``. The reward is never
+read. Any batch shape (flattened to one dim); the input tensordict is read, never written.
 """
 
 from __future__ import annotations
@@ -60,25 +54,6 @@ from pe_rlhf.objectives.contract import KeyedLoss, TakeoverKeys, next_keys
 
 
 PROXY_REDUCTIONS = ("takeover_rows", "batch")  # ProxyValueLoss.proxy_reduction
-PREACTIVATION = "action_preactivation"  # what make_deterministic_actor writes beside its action
-
-
-class InvertedGradientTanh(torch.autograd.Function):
-    """``tanh(u)`` forward; backward, the incoming gradient ``g`` (of a loss to minimise, with respect to the action
-    ``a``) scaled by the room between ``a`` and the bound that a descent step moves it towards:
-    ``g * (1 - a) / 2`` where ``g < 0`` (``a`` goes up), ``g * (1 + a) / 2`` elsewhere (Hausknecht and Stone,
-    "Deep reinforcement learning in parameterized action space", 2016), in place of the tanh's ``1 - a^2``."""
-
-    @staticmethod
-    def forward(ctx, preactivation: torch.Tensor) -> torch.Tensor:
-        action = torch.tanh(preactivation)
-        ctx.save_for_backward(action)
-        return action
-
-    @staticmethod
-    def backward(ctx, grad: torch.Tensor) -> torch.Tensor:
-        (action,) = ctx.saved_tensors
-        return grad * torch.where(grad < 0, 1.0 - action, 1.0 + action) / 2
 
 
 class ProxyValueLoss(KeyedLoss, LossModule):
@@ -100,10 +75,6 @@ class ProxyValueLoss(KeyedLoss, LossModule):
         mask_td_at_takeover_start: leave takeover-start rows out of the TD term (PVP's mask).
         proxy_reduction: ``"takeover_rows"`` (the proxy labels on takeover rows only) or ``"batch"`` (PVP's released
             code: over the whole batch, scaled by the takeover share, and TD weighted 0.5; module docstring).
-        td_into_takeover: False: the agent's rows followed by a takeover's first step (``takeover_follows``) are
-            left out of the TD term, so the ``-B`` of a takeover is not carried back to the steps before it.
-        inverting_gradients: the actor's term passes its gradient through inverted gradients instead of the tanh's
-            derivative (module docstring); the actor must write ``action_preactivation``.
     """
 
     @dataclass
@@ -112,7 +83,6 @@ class ProxyValueLoss(KeyedLoss, LossModule):
 
         state_action_value: NestedKey = "state_action_value"
         terminated: NestedKey = "terminated"
-        takeover_follows: NestedKey = ("next", "takeover_follows")
 
     default_keys = _AcceptedKeys
     tensor_keys: _AcceptedKeys
@@ -129,22 +99,12 @@ class ProxyValueLoss(KeyedLoss, LossModule):
                  q_value_bound: float = 1.0, gamma: float = 0.99, num_qvalue_nets: int = 2,
                  target_noise: float = 0.2, target_noise_clip: float = 0.5, policy_delay: int = 2,
                  bc_weight: float = 0.0, mask_td_at_takeover_start: bool = False,
-                 proxy_reduction: str = "takeover_rows", td_into_takeover: bool = True,
-                 inverting_gradients: bool = False) -> None:
+                 proxy_reduction: str = "takeover_rows") -> None:
         super().__init__()
         if proxy_reduction not in PROXY_REDUCTIONS:
             raise ValueError(f"ProxyValueLoss proxy_reduction={proxy_reduction!r} is invalid: allowed "
                              f"{list(PROXY_REDUCTIONS)}")
         self.proxy_reduction = proxy_reduction
-        if not isinstance(td_into_takeover, bool):
-            raise ValueError(f"ProxyValueLoss td_into_takeover={td_into_takeover!r} is invalid: true or false")
-        self.td_into_takeover = td_into_takeover
-        if not isinstance(inverting_gradients, bool):
-            raise ValueError(f"ProxyValueLoss inverting_gradients={inverting_gradients!r} is invalid: true or false")
-        if inverting_gradients and PREACTIVATION not in actor_network.out_keys:
-            raise ValueError(f"ProxyValueLoss inverting_gradients=True needs an actor that writes {PREACTIVATION!r} "
-                             f"(pe_rlhf.modules.make_deterministic_actor); this one writes {actor_network.out_keys}")
-        self.inverting_gradients = inverting_gradients
         for name, value, low in (("q_value_bound", q_value_bound, 0.0), ("target_noise", target_noise, 0.0),
                                  ("target_noise_clip", target_noise_clip, 0.0), ("bc_weight", bc_weight, 0.0)):
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) \
@@ -169,8 +129,7 @@ class ProxyValueLoss(KeyedLoss, LossModule):
     def _loss_in_keys(self) -> list[NestedKey]:
         keys = self.tensor_keys
         states = self.state_keys
-        flags = [keys.intervention, keys.intervention_start] + ([] if self.td_into_takeover
-                                                               else [keys.takeover_follows])
+        flags = [keys.intervention, keys.intervention_start]
         return [keys.action, keys.behavior_action, *flags, *next_keys([keys.terminated]), *self.actor_network.in_keys,
                 *states, *next_keys(self.actor_network.in_keys), *next_keys(states)]
 
@@ -196,13 +155,12 @@ class ProxyValueLoss(KeyedLoss, LossModule):
         td.set(self.policy_action_key, action)
         return self._vmap_q(td, params).get(self.tensor_keys.state_action_value).squeeze(-1)
 
-    def _act(self, params, tensordict: TensorDictBase, inverted: bool = False) -> torch.Tensor:
-        """The deterministic actor's action under ``params`` (the input is not written); ``inverted``: the same
-        values, their gradient through :class:`InvertedGradientTanh` from the pre-activation."""
+    def _act(self, params, tensordict: TensorDictBase) -> torch.Tensor:
+        """The deterministic actor's action under ``params`` (the input is not written)."""
         td = tensordict.select(*self.actor_network.in_keys, strict=False)
         with params.to_module(self.actor_network):
             out = self.actor_network(td)
-        return InvertedGradientTanh.apply(out.get(PREACTIVATION)) if inverted else out.get(self.policy_action_key)
+        return out.get(self.policy_action_key)
 
     def td_target(self, tensordict: TensorDictBase) -> torch.Tensor:
         """``(rows,)``: ``gamma * (1 - terminated) * min_k Q'_k(s', smoothed pi'(s'))``, zero reward, no grad."""
@@ -237,8 +195,6 @@ class ProxyValueLoss(KeyedLoss, LossModule):
         td_rows = torch.ones_like(takeover)
         if self.mask_td_at_takeover_start:
             td_rows = ~tensordict.get(keys.intervention_start).reshape(-1).bool()
-        if not self.td_into_takeover:
-            td_rows = td_rows & ~tensordict.get(keys.takeover_follows).reshape(-1).bool()
         td_error = (q_exec - target)[:, td_rows]
         loss_td = td_error.pow(2).mean(-1).sum(0) if td_rows.any() else q_all.new_zeros(())
         zero = q_all.new_zeros(())
@@ -255,7 +211,7 @@ class ProxyValueLoss(KeyedLoss, LossModule):
 
         loss_actor, loss_bc, saturation = zero, zero, zero
         if (int(self.calls) + 1) % self.policy_delay == 0:  # after every policy_delay-th critic step
-            action = self._act(self.actor_network_params, tensordict, inverted=self.inverting_gradients)
+            action = self._act(self.actor_network_params, tensordict)
             q_first = self._q(self.qvalue_network_params.detach()[:1], tensordict, action)[0]
             loss_actor = -q_first.mean()
             saturation = (action.detach().abs() > 0.99).float().mean()
@@ -278,18 +234,3 @@ class ProxyValueLoss(KeyedLoss, LossModule):
             "intervention_rate": takeover.float().mean(),
             "actor_saturation": saturation,
         }, batch_size=[])
-
-
-def mark_takeover_entries(batch: TensorDictBase, *, intervention: NestedKey = ("next", "intervention"),
-                          done: NestedKey = ("next", "done"),
-                          out: NestedKey = ("next", "takeover_follows")) -> TensorDictBase:
-    """Write ``out`` (bool ``(..., T, 1)``) on a collected batch of consecutive steps, time its last batch dim:
-    true on a row without a takeover whose next row, in the same episode, is one (the step before a mentor steps
-    in). The batch's last row reads false (its next step is in the next batch). What
-    ``ProxyValueLoss(td_into_takeover=False)`` reads; the batch is written in place and returned."""
-    taken = batch.get(intervention).bool()
-    ended = batch.get(done).bool()
-    follows = torch.zeros_like(taken)
-    follows[..., :-1, :] = taken[..., 1:, :] & ~taken[..., :-1, :] & ~ended[..., :-1, :]
-    batch.set(out, follows)
-    return batch

@@ -4,9 +4,7 @@ Issue 43 retired, for every recipe: ``logger.csv`` / ``wandb`` / ``tensorboard``
 ``logger.backends``, which always holds ``csv``), ``logger.wandb_project`` (now ``logger.project``),
 ``logger.wandb_mode`` (now wandb's own ``$WANDB_MODE``, offline when unset), ``logger.out_dir`` (the run folder is
 ``--out DIR``), ``mentor.seed`` (the mentor is seeded from the run's ``seed``) and ``actor_selection.split`` (always
-the train scenes). Issue 41 retired options of the proxy-value loss whose measurement lost
-(``loss.label_physics_action``: physics' executed actions are always labelled); a saved file that holds the value
-the loss now always has is read without it. :func:`translate_retired` rewrites a config file's values to the settings that replaced them, so
+the train scenes). :func:`translate_retired` rewrites a config file's values to the settings that replaced them, so
 that ``--resume`` and the loaders of a run folder read old run folders; a value the new settings cannot express is
 refused in one line (:class:`~pe_rlhf.runtime.config_rules.ConfigError`), one they no longer need is dropped with a
 warning that says what the run does instead.
@@ -31,11 +29,6 @@ RETIRED: dict[str, str] = {
     "mentor.seed": "the mentor is seeded from the run's seed (worker i: seed + i)",
     "actor_selection.split": "the actor is picked on train scenes only",
 }
-# {retired loss option: (the value the loss now always has, what it does)}: a saved file may hold that value only
-RETIRED_LOSS_OPTIONS: dict[str, tuple[Any, str]] = {
-    "label_physics_action": (True, "physics' executed actions are labelled +B like the mentor's"),
-}
-RETIRED.update({f"loss.{name}": f"no longer an option: {what}" for name, (_, what) in RETIRED_LOSS_OPTIONS.items()})
 
 
 def translate_retired(values: dict[str, Any], path: str | Path) -> dict[str, Any]:
@@ -49,12 +42,6 @@ def translate_retired(values: dict[str, Any], path: str | Path) -> dict[str, Any
             warnings.warn(f"{path}: mentor.seed={seed!r} is no longer a setting: the mentor is seeded from "
                           f"seed={run_seed!r} (a resumed run continues its mentor from the checkpoint)", UserWarning,
                           stacklevel=3)
-    loss = values.get("loss")
-    for name, (kept, what) in RETIRED_LOSS_OPTIONS.items():
-        if isinstance(loss, dict) and name in loss:
-            value = loss.pop(name)
-            if value != kept:
-                raise invalid_value(f"loss.{name}", value, f"no longer a setting (in {path}): {what}; delete the line")
     picking = values.get("actor_selection")
     if isinstance(picking, dict) and "split" in picking:
         split = picking.pop("split")

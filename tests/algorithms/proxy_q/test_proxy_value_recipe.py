@@ -90,23 +90,3 @@ def test_pvp_smoke_run_learns_from_proxy_values_and_its_actor_loads_back(tmp_pat
     actor = load_run_actor(tmp_path)
     assert not isinstance(actor, ProbabilisticActor)
     assert final["episodes"] >= 1
-
-
-def test_without_td_into_takeover_the_stored_rows_flag_the_step_before_each_takeover(tmp_path):
-    """``loss.td_into_takeover=false``: every row the run stores carries ``("next", "takeover_follows")``, true
-    exactly on an agent row whose next step, in the same episode and the same collected batch, is a takeover's
-    first."""
-    runs = load_script("tests/reliability/_runs.py", "reliability_runs")
-    out = tmp_path / "run"
-    runs.train(out, "collector.total_frames=150", "collector.warmup_steps=25", "loss.td_into_takeover=false",
-               runs.UNIFORM_REPLAY)  # one buffer in collection order
-    replay = runs.checkpoint_contents(out / "checkpoints" / "ckpt_000000150")["replay"]
-    taken = replay["next", "intervention"].squeeze(-1)
-    done = replay["next", "done"].squeeze(-1)
-    follows = replay["next", "takeover_follows"].squeeze(-1)
-    frames = int(load_config(out / "config.yaml", apply_profile=False).collector.frames_per_batch)
-    expected = torch.zeros_like(follows)
-    expected[:-1] = taken[1:] & ~taken[:-1] & ~done[:-1]
-    expected[frames - 1::frames] = False  # a batch's last row: its next step is the next batch's
-    assert len(follows) == 150 and follows.any() and torch.equal(follows, expected)
-    assert not (follows & taken).any()

@@ -106,7 +106,8 @@ def test_a_saved_config_from_before_the_settings_were_retired_still_loads(tmp_pa
     experiment options, the physics booleans, ...) loads for evaluation and resume, each mapped or dropped."""
     old = to_container(load_config(overrides=["loss.objective=proxy_value"]))
     old["selector"].update(enabled=True, switch_margin=None, veto_patience=1, forecast_hold=1.0, hidden=[256, 256])
-    old["loss"].update(physics_labels=False, preactivation_penalty=0.0, gap_coef=10.0, fused_critics=True)
+    old["loss"].update(physics_labels=False, preactivation_penalty=0.0, gap_coef=10.0, fused_critics=True,
+                       label_physics_action=False, td_into_takeover=False, inverting_gradients=True)
     old["physics"] = {"enabled": True, "see_obstacles": False, "stop_for_obstacles": True, "use_idm": True,
                       "use_mobil": False}
     old["collector"].update(learning_starts=100, exploration="random")

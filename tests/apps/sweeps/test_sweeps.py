@@ -92,7 +92,7 @@ def test_named_sweep_configs_load_and_validate():
                       "claims_collapsing": 4 * 5, "claims_adversarial": 4 * 5,
                       "epsilon_sensitivity": 5 * 2 * 3 + 3, "loss_ablations": 6 * 3, "lower_bound": 4 * 2 * 3 + 3,
                       "mentor_proficiency": 12, "physics_ablation": 9 + 3, "warmup": 2 * 4 * 3,
-                      "learner_calibration": 6 * 3, "learner_pvp": 4 * 3, "learner_early_mentor": 2 * 3, "learner_td_cut": 2 * 3, "learner_bc": 2 * 3, "learner_inverting": 2 * 3,
+                      "learner_calibration": 6 * 3, "learner_pvp": 4 * 3, "learner_early_mentor": 2 * 3, "learner_bc": 2 * 3,
                       "claims_learner": 5 * 5,
                       "table1_rlhf": 5 * 3 + 3, "haco_failure_target": 2 * 3}
 

@@ -97,13 +97,15 @@ def load_config(path: str | Path | None = None, overrides: Iterable[str] = (), *
 
 # Settings a run folder's saved config may hold from before they were retired (issue 43), each dropped on reading it:
 # the selector's experiment options whose measurements lost (docs/results/claims/README.md), its Q-ensemble fit
-# (now builders.ENSEMBLE_FIT), selector.enabled (physics.enabled says it), and the proxy-value loss's physics_labels and
-# preactivation_penalty (docs/experiments/learner.md). A run resumed from such a folder goes on under today's code.
+# (now builders.ENSEMBLE_FIT), selector.enabled (physics.enabled says it), and the proxy-value loss's physics_labels,
+# preactivation_penalty, label_physics_action, td_into_takeover and inverting_gradients (docs/experiments/learner.md).
+# A run resumed from such a folder goes on under today's code.
 RETIRED = ("selector.enabled", "selector.variance_threshold", "selector.switch_margin", "selector.veto_patience",
            "selector.imminent_failure", "selector.forecast_hold", "selector.forecast_hold_one_lane",
            "selector.forecast_recovery", "selector.warmup_selection", "selector.hidden", "selector.warmup_fit_steps",
            "selector.target_noise", "selector.tau", "selector.lr", "selector.batch_size", "loss.physics_labels",
-           "loss.preactivation_penalty", "loss.fused_critics", "loss.target_noise_clip", "collector.learning_starts",
+           "loss.preactivation_penalty", "loss.label_physics_action", "loss.td_into_takeover",
+           "loss.inverting_gradients", "loss.fused_critics", "loss.target_noise_clip", "collector.learning_starts",
            "collector.exploration")
 # ... and those that moved: {old: new}
 MOVED = {"loss.disturbance_weight": "disturbance.weight",

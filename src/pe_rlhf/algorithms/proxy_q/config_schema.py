@@ -213,12 +213,6 @@ class ProxyValueLossConfig(LossCommon):
     # takeover_rows: the proxy labels on takeover rows | batch: PVP's released code (over the whole batch, times the
     # takeover share, so agent rows are pulled to 0; TD weighted 0.5)
     proxy_reduction: str = knob("takeover_rows", rule_choice(*PROXY_REDUCTIONS))
-    # false: the agent's rows followed by a takeover's first step are left out of TD, so the takeover's -B is not
-    # carried back to the steps that led there (PVP's released code bootstraps them from where the agent drives again)
-    td_into_takeover: bool = knob(True, rule_bool)
-    # true: the actor's gradient through inverted gradients (scaled by the room to the bound it moves towards) instead
-    # of the tanh's derivative, so a saturated actor is pulled back when the critic's slope turns
-    inverting_gradients: bool = knob(False, rule_bool)
 
 
 # loss.objective -> its group's settings

@@ -33,9 +33,7 @@ def build_loss(cfg, actor) -> tuple[PERLHFLoss | ProxyValueLoss, ForeachSoftUpda
                               q_value_bound=float(c.q_value_bound), gamma=float(c.gamma),
                               target_noise=float(c.target_noise), policy_delay=int(c.policy_delay), bc_weight=float(c.bc_weight),
                               mask_td_at_takeover_start=bool(c.mask_td_at_takeover_start),
-                              proxy_reduction=str(c.proxy_reduction),
-                              td_into_takeover=bool(c.td_into_takeover),
-                              inverting_gradients=bool(c.inverting_gradients))
+                              proxy_reduction=str(c.proxy_reduction))
         return loss, ForeachSoftUpdate(loss, tau=float(c.tau))
     target_entropy = cfg.loss.target_entropy
     d = cfg.disturbance  # HAIM-DRL's group: its weight and critics only with enabled

@@ -54,7 +54,7 @@ from typing import TYPE_CHECKING
 import torch
 
 from pe_rlhf.modules import EnsembleSchedule
-from pe_rlhf.objectives import fit_q_ensemble, mark_takeover_entries
+from pe_rlhf.objectives import fit_q_ensemble
 from pe_rlhf.runtime.checkpoint import capture_rng, restore_rng
 from pe_rlhf.runtime.collection_state import capture_collection, restore_collection
 from pe_rlhf.runtime.run import Learner
@@ -113,8 +113,6 @@ class ProxyQLearner(Learner):
         self.env, self.mentor = builders.build_local_env(cfg, self.env_config, self.value_source)  # None: workers own them
         self.learner_actor = builders.build_actor(cfg)
         self.loss, soft_update = builders.build_loss(cfg, self.learner_actor)
-        # the rows before a takeover carry a flag the loss reads (ProxyValueLoss.td_into_takeover false)
-        self.marks_takeover_entries = not getattr(self.loss, "td_into_takeover", True)
         self.device = builders.learner_device(cfg)  # None: the CPU, acting with the learner's actor
         if self.device is not None:
             self.loss.to(self.device)  # actor, critics, targets (the actor's parameters are the loss's)
@@ -270,8 +268,6 @@ class ProxyQLearner(Learner):
             self.warmup_buffer.extend(ensemble_transitions(batch).reshape(-1))  # (N, T) with multisync: time last
             batch = relabel_warmup(batch)
             m["intervention_cost"] = 0.0  # forced mentor driving is no takeover: nothing is charged
-        if self.marks_takeover_entries:  # loss.td_into_takeover=false: the rows before a takeover, out of TD
-            batch = mark_takeover_entries(batch.clone(False))
         with self.updater.lock:  # the learner thread samples from it
             self.replay.extend(batch.reshape(-1))
         self._fit_value_source()
