@@ -48,25 +48,22 @@ def make_qvalue(obs_dim: int, action_dim: int = 2, hidden: tuple[int, ...] = (25
 
 
 class TanhHead(nn.Module):
-    """``(tanh(mlp(x)), mlp(x))``: a bounded action and the pre-activation it came from (a loss may keep the latter
-    out of the tanh's flat tails, where no gradient passes)."""
+    """``tanh(mlp(x))``: a bounded action (the MLP under ``mlp``, the name saved actors' weights carry)."""
 
     def __init__(self, mlp: nn.Module):
         super().__init__()
         self.mlp = mlp
 
-    def forward(self, observation: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        pre = self.mlp(observation)
-        return torch.tanh(pre), pre
+    def forward(self, observation: torch.Tensor) -> torch.Tensor:
+        return torch.tanh(self.mlp(observation))
 
 
 def make_deterministic_actor(obs_dim: int, action_dim: int = 2, hidden: tuple[int, ...] = (256, 256)) -> Actor:
     """TD3-style actor: reads ``observation`` ``(..., obs_dim)``, writes ``action`` ``(..., A)`` in [-1, 1] (an MLP,
-    then tanh) and ``action_preactivation`` ``(..., A)`` (before the tanh). It explores only through what the
-    collector adds (:class:`torchrl.modules.AdditiveGaussianModule`)."""
+    then tanh). It explores only through what the collector adds (:class:`torchrl.modules.AdditiveGaussianModule`)."""
     mlp = fp32_output_layer(MLP(in_features=obs_dim, out_features=action_dim, num_cells=list(hidden),
                                 activation_class=nn.ReLU))
-    return Actor(TanhHead(mlp), in_keys=["observation"], out_keys=["action", "action_preactivation"],
+    return Actor(TanhHead(mlp), in_keys=["observation"], out_keys=["action"],
                  spec=Bounded(-1.0, 1.0, (action_dim,)))
 
 

@@ -28,7 +28,7 @@ def test_proxy_value_objective_builds_a_deterministic_actor_its_loss_and_two_opt
     cfg = load_config(overrides=["profile=smoke", "loss.objective=proxy_value", "loss.layer_norm=true",
                                  "loss.q_value_bound=2", "loss.bc_weight=0.5", "loss.policy_delay=3"])
     actor = builders.build_actor(cfg)
-    assert not isinstance(actor, ProbabilisticActor) and actor.out_keys == ["action", "action_preactivation"]
+    assert not isinstance(actor, ProbabilisticActor) and actor.out_keys == ["action"]
     loss, _ = builders.build_loss(cfg, actor)
     assert isinstance(loss, ProxyValueLoss)
     assert (loss.q_value_bound, loss.bc_weight, loss.policy_delay) == (2.0, 0.5, 3)
