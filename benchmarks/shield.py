@@ -38,8 +38,6 @@ from pe_rlhf.envs.splits import SPLITS
 from pe_rlhf.evaluation import evaluate, make_policy
 from pe_rlhf.evaluation.statistics import bootstrap_interval
 from pe_rlhf.mentors import ADVERSARY_NAMES
-from pe_rlhf.physics import SafetyForecastConfig
-from pe_rlhf.transforms.shield import shield_selector
 from pe_rlhf.wrappers import SafetyShieldWrapper
 
 POLICIES = ("random", "adversarial", "idm-mobil-blind", *ADVERSARY_NAMES)
@@ -71,7 +69,7 @@ def agent_policy(run_dir: str):
 
 
 def measure(policies: dict, seeds: list[int], config: DrivingConfig, threshold: float, save=None,
-            floor: bool = True, done: dict | None = None, repeat_hold: float | None = None) -> dict:
+            floor: bool = True, done: dict | None = None) -> dict:
     """Each policy (name -> factory) alone and shielded; IDM-MOBIL alone once (``floor=False``: not, measured
     apart); decisions per second. ``save(results)`` is called after each policy (a long run keeps what it
     measured); the policies of ``done`` (a saved run's, on the same scenes) are kept, not measured again."""
@@ -88,8 +86,7 @@ def measure(policies: dict, seeds: list[int], config: DrivingConfig, threshold: 
             continue
         alone = evaluate(factory(), seeds, config, name=name).to_dict()
         shielded = evaluate(factory(), seeds, config, name=f"{name} shielded",
-                            wrap_env=lambda env: SafetyShieldWrapper(env, selector=shield_selector(
-                                threshold, forecast=SafetyForecastConfig(repeat_hold=repeat_hold)))).to_dict()
+                            wrap_env=lambda env: SafetyShieldWrapper(env, threshold)).to_dict()
         results[name] = {"alone": rates(alone), "shielded": rates(shielded)}
         print(f"{name}: alone {results[name]['alone']['success']:.2f}/{results[name]['alone']['violation']:.2f}, "
               f"shielded {results[name]['shielded']['success']:.2f}/{results[name]['shielded']['violation']:.2f} "
@@ -186,9 +183,6 @@ def main(argv=None) -> dict:
     parser.add_argument("--from-sweep", action="append", default=[], type=Path, metavar="SWEEP_DIR",
                         help="the trained cells of a sweep run with shield, read from their evaluations (repeatable)")
     parser.add_argument("--threshold", type=float, default=0.5, help="the shield's threshold [s]")
-    parser.add_argument("--repeat-hold", type=float, default=None, metavar="SECONDS",
-                        help="the latch's repeated forecast: the action held this long, then the recovery (default: "
-                             "the whole horizon)")
     parser.add_argument("--no-floor", action="store_true", help="leave out IDM-MOBIL alone (measured once, apart)")
     parser.add_argument("--json", type=Path, default=None)
     parser.add_argument("--resume", action="store_true", help="keep the policies --json already holds (same "
@@ -215,7 +209,6 @@ def main(argv=None) -> dict:
         policies[name] = lambda run_dir=run_dir: agent_policy(run_dir)
     start = time.time()
     meta = {"split": args.split, "scenes": [seeds[0], seeds[-1]], "episodes": len(seeds), "threshold": args.threshold,
-            "repeat_hold": args.repeat_hold,
             "command": "python benchmarks/shield.py " + " ".join(sys.argv[1:] if argv is None else argv)}
 
     def save(results: dict) -> None:
@@ -227,12 +220,8 @@ def main(argv=None) -> dict:
     for sweep in args.from_sweep:
         if not sweep.is_dir():
             parser.error(f"--from-sweep {sweep}: no such sweep folder")
-    try:
-        SafetyForecastConfig(repeat_hold=args.repeat_hold)
-    except ValueError as err:
-        parser.error(f"--repeat-hold {args.repeat_hold}: {err}")
     results = measure(policies, seeds, DrivingConfig(split=args.split, lane_features=True), args.threshold, save,
-                      floor=not args.no_floor, done=done, repeat_hold=args.repeat_hold)
+                      floor=not args.no_floor, done=done)
     for sweep in args.from_sweep:
         rows, notes = sweep_agents(sweep, seeds)
         for note in notes:

@@ -31,12 +31,6 @@ def test_an_agent_needs_an_existing_run_folder(bench, tmp_path, capsys):
     assert "NAME=RUN_DIR with an existing run folder" in capsys.readouterr().err
 
 
-def test_a_bad_repeat_hold_is_refused_by_name(bench, capsys):
-    with pytest.raises(SystemExit):
-        bench.main(["--repeat-hold", "0", "--policies"])
-    assert "--repeat-hold 0.0: SafetyForecastConfig.repeat_hold=0.0 must be" in capsys.readouterr().err
-
-
 @pytest.mark.slow
 def test_shielded_never_brake_on_one_train_scene(bench, tmp_path):
     out = tmp_path / "s.json"

@@ -81,22 +81,6 @@ def test_config_rejects_bad_values_by_name():
         SafetyForecastConfig(hold=-1.0)
     with pytest.raises(ValueError, match="dt"):
         SafetyForecastConfig(dt=0.0)
-    for bad in (0.0, -1.0, float("inf"), True):
-        with pytest.raises(ValueError, match="repeat_hold"):
-            SafetyForecastConfig(repeat_hold=bad)
-
-
-def test_a_repeated_action_is_held_for_repeat_hold_then_recovers():
-    """``repeated_values``: by default the action held for the whole horizon; with ``repeat_hold`` held that long,
-    then the recovery, so a turn a driver repeats for a moment is not judged as a turn held until it leaves the
-    road."""
-    env = at_speed(12.0)
-    obs, turn = torch.zeros(1, 270), torch.tensor([[0.3, 0.0]])
-    whole = SafetyForecastValue().repeated_values(obs, turn, env=env).item()
-    assert whole < HORIZON  # a gentle turn held for 6 s leaves the 3-lane road
-    short = SafetyForecastValue(SafetyForecastConfig(repeat_hold=0.5)).repeated_values(obs, turn, env=env).item()
-    assert short == pytest.approx(HORIZON)  # half a second of it, then the recovery: safe
-    assert short == pytest.approx(time_to_failure(env, turn[0].numpy(), SafetyForecastConfig(hold=0.5)))
 
 
 def test_value_source_shape_and_non_finite_actions():

@@ -75,9 +75,7 @@ class SafetyForecastConfig:
     ``recovery``: the recovery's steering (``RECOVERIES``); ``hold_one_lane``: the hold ends once the car has moved
     one lane sideways;
     ``followers``: moving road users behind the ego drive on under the IDM (False: they are ignored);
-    ``road_users``: how a lane-following road user ahead moves (:data:`pe_rlhf.physics.road_users.MODELS`);
-    ``repeat_hold`` [s]: how long :meth:`SafetyForecastValue.repeated_values` (a driver who repeats its action, the
-    latch's test) holds the action before the recovery; None: the whole horizon, with no recovery."""
+    ``road_users``: how a lane-following road user ahead moves (:data:`pe_rlhf.physics.road_users.MODELS`)."""
 
     hold: float = 1.0
     horizon: float = 6.0
@@ -87,7 +85,6 @@ class SafetyForecastConfig:
     hold_one_lane: bool = False
     followers: bool = True
     road_users: str = "lanes_or_velocity"
-    repeat_hold: float | None = None
 
     def __post_init__(self) -> None:
         if self.road_users not in ROAD_USER_MODELS:
@@ -102,10 +99,6 @@ class SafetyForecastConfig:
                 raise ValueError(f"SafetyForecastConfig.{name}={value!r} must be a finite number >= 0")
         if self.dt <= 0 or self.horizon <= 0:
             raise ValueError(f"SafetyForecastConfig dt={self.dt!r} and horizon={self.horizon!r} must be > 0")
-        if self.repeat_hold is not None and (isinstance(self.repeat_hold, bool) or not isinstance(
-                self.repeat_hold, (int, float)) or not math.isfinite(self.repeat_hold) or self.repeat_hold <= 0):
-            raise ValueError(f"SafetyForecastConfig.repeat_hold={self.repeat_hold!r} must be None (the whole "
-                             "horizon) or a finite number of seconds > 0")
 
 
 def _others(env, horizon: float) -> list:
@@ -339,12 +332,9 @@ class SafetyForecastValue(torch.nn.Module):
         return self._forecast(actions, env, self.config)
 
     def repeated_values(self, observation: torch.Tensor, actions: torch.Tensor, env=None) -> torch.Tensor:
-        """As :meth:`values`, each action held for ``config.repeat_hold`` seconds, then the recovery (None: the whole
-        horizon, no recovery): the action as a driver who repeats it at every step will execute it
-        (``HybridActionSelector(persistence=...)``)."""
-        repeat = self.config.repeat_hold
-        config = dataclasses.replace(self.config, hold=self.config.horizon if repeat is None else
-                                     min(float(repeat), self.config.horizon))
+        """As :meth:`values`, each action held for the whole horizon (no recovery): the action as a driver who
+        repeats it at every step will execute it (``HybridActionSelector(persistence=...)``)."""
+        config = dataclasses.replace(self.config, hold=self.config.horizon)
         return self._forecast(actions, env, config)
 
     def progress(self, observation: torch.Tensor, actions: torch.Tensor, env=None) -> torch.Tensor:
