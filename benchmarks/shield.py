@@ -15,7 +15,8 @@ e.g. ``pe-rlhf-professional-s0``; agents sharing a NAME prefix before ``-s<seed>
 
 Writes ``{"<policy>": {"alone": {"success", "violation", ...}, "shielded": {"success", "violation",
 "override_share", ...}}, "idm-mobil": {...}, "decisions_per_second": x, ...}``: rates over the scenes with
-95% bootstrap intervals (``*_ci``); ``decisions_per_second`` is 1 / the mean time of a shield's decision
+95% bootstrap intervals (``*_ci``); ``--fallback idm-mobil-oracle`` gives the shield IDM-MOBIL whose MOBIL sees
+obstacles too (the shield's default is the paper's physics); ``decisions_per_second`` is 1 / the mean time of a shield's decision
 (physics' action and the forecasts), one thread (``torch.set_num_threads(1)``). Calibrate (``--threshold``) on
 ``--split train`` only.
 """
@@ -38,9 +39,13 @@ from pe_rlhf.envs.splits import SPLITS
 from pe_rlhf.evaluation import evaluate, make_policy
 from pe_rlhf.evaluation.statistics import bootstrap_interval
 from pe_rlhf.mentors import ADVERSARY_NAMES
+from pe_rlhf.physics import IDMMobilPolicy, PhysicsConfig
 from pe_rlhf.wrappers import SafetyShieldWrapper
 
 POLICIES = ("random", "adversarial", "idm-mobil-blind", *ADVERSARY_NAMES)
+# The shield's fallback: IDM-MOBIL as the paper's physics (IDM stops for obstacles, MOBIL does not see them), or
+# with MOBIL seeing them too (it changes lanes around obstacles, not into them).
+FALLBACKS = {"idm-mobil": PhysicsConfig(), "idm-mobil-oracle": PhysicsConfig(see_obstacles=True)}
 
 
 def rates(summary: dict) -> dict:
@@ -69,7 +74,7 @@ def agent_policy(run_dir: str):
 
 
 def measure(policies: dict, seeds: list[int], config: DrivingConfig, threshold: float, save=None,
-            floor: bool = True, done: dict | None = None) -> dict:
+            floor: bool = True, done: dict | None = None, fallback: str = "idm-mobil") -> dict:
     """Each policy (name -> factory) alone and shielded; IDM-MOBIL alone once (``floor=False``: not, measured
     apart); decisions per second. ``save(results)`` is called after each policy (a long run keeps what it
     measured); the policies of ``done`` (a saved run's, on the same scenes) are kept, not measured again."""
@@ -86,7 +91,8 @@ def measure(policies: dict, seeds: list[int], config: DrivingConfig, threshold: 
             continue
         alone = evaluate(factory(), seeds, config, name=name).to_dict()
         shielded = evaluate(factory(), seeds, config, name=f"{name} shielded",
-                            wrap_env=lambda env: SafetyShieldWrapper(env, threshold)).to_dict()
+                            wrap_env=lambda env: SafetyShieldWrapper(
+                                env, threshold, physics=IDMMobilPolicy(FALLBACKS[fallback]))).to_dict()
         results[name] = {"alone": rates(alone), "shielded": rates(shielded)}
         print(f"{name}: alone {results[name]['alone']['success']:.2f}/{results[name]['alone']['violation']:.2f}, "
               f"shielded {results[name]['shielded']['success']:.2f}/{results[name]['shielded']['violation']:.2f} "
@@ -183,6 +189,8 @@ def main(argv=None) -> dict:
     parser.add_argument("--from-sweep", action="append", default=[], type=Path, metavar="SWEEP_DIR",
                         help="the trained cells of a sweep run with shield, read from their evaluations (repeatable)")
     parser.add_argument("--threshold", type=float, default=0.5, help="the shield's threshold [s]")
+    parser.add_argument("--fallback", choices=list(FALLBACKS), default="idm-mobil",
+                        help="the shield's physics (default: idm-mobil, the shield's own default)")
     parser.add_argument("--no-floor", action="store_true", help="leave out IDM-MOBIL alone (measured once, apart)")
     parser.add_argument("--json", type=Path, default=None)
     parser.add_argument("--resume", action="store_true", help="keep the policies --json already holds (same "
@@ -209,6 +217,7 @@ def main(argv=None) -> dict:
         policies[name] = lambda run_dir=run_dir: agent_policy(run_dir)
     start = time.time()
     meta = {"split": args.split, "scenes": [seeds[0], seeds[-1]], "episodes": len(seeds), "threshold": args.threshold,
+            "fallback": args.fallback,
             "command": "python benchmarks/shield.py " + " ".join(sys.argv[1:] if argv is None else argv)}
 
     def save(results: dict) -> None:
@@ -221,7 +230,7 @@ def main(argv=None) -> dict:
         if not sweep.is_dir():
             parser.error(f"--from-sweep {sweep}: no such sweep folder")
     results = measure(policies, seeds, DrivingConfig(split=args.split, lane_features=True), args.threshold, save,
-                      floor=not args.no_floor, done=done)
+                      floor=not args.no_floor, done=done, fallback=args.fallback)
     for sweep in args.from_sweep:
         rows, notes = sweep_agents(sweep, seeds)
         for note in notes:
