@@ -16,9 +16,9 @@ e.g. ``pe-rlhf-professional-s0``; agents sharing a NAME prefix before ``-s<seed>
 Writes ``{"<policy>": {"alone": {"success", "violation", ...}, "shielded": {"success", "violation",
 "override_share", ...}}, "idm-mobil": {...}, "decisions_per_second": x, ...}``: rates over the scenes with
 95% bootstrap intervals (``*_ci``); ``--fallback idm-mobil-oracle`` gives the shield IDM-MOBIL whose MOBIL sees
-obstacles too (the shield's default is the paper's physics); ``decisions_per_second`` is 1 / the mean time of a shield's decision
-(physics' action and the forecasts), one thread (``torch.set_num_threads(1)``). Calibrate (``--threshold``) on
-``--split train`` only.
+obstacles too (the shield's default is the paper's physics); ``decisions_per_second`` is 1 / the mean time of a
+shield's decision (physics' action and the forecasts), one thread (``torch.set_num_threads(1)``). Calibrate
+(``--threshold``) on ``--split train`` only.
 """
 
 from __future__ import annotations
