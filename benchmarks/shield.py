@@ -14,10 +14,10 @@ e.g. ``pe-rlhf-professional-s0``; agents sharing a NAME prefix before ``-s<seed>
 ``final_eval.json`` and ``shielded_eval.json`` (the same scenes required), not evaluated again.
 
 Writes ``{"<policy>": {"alone": {"success", "violation", ...}, "shielded": {"success", "violation",
-"override_share", ...}}, "idm-mobil": {...}, "decisions_per_second": x, ...}``: rates over the scenes with
-95% bootstrap intervals (``*_ci``); ``--fallback idm-mobil-oracle`` gives the shield IDM-MOBIL whose MOBIL sees
-obstacles too (the shield's default is the paper's physics); ``decisions_per_second`` is 1 / the mean time of a
-shield's decision (physics' action and the forecasts), one thread (``torch.set_num_threads(1)``). Calibrate
+"override_share", ...}}, "idm-mobil": {...}, "decisions_per_second": x, ...}``: rates over the scenes with 95%
+bootstrap intervals (``*_ci``); ``--fallback idm-mobil`` gives the shield the paper's physics (MOBIL blind to
+obstacles) in place of its own (``SHIELD_PHYSICS``: MOBIL sees them); ``decisions_per_second`` is 1 / the mean time
+of a shield's decision (physics' action and the forecasts), one thread (``torch.set_num_threads(1)``). Calibrate
 (``--threshold``) on ``--split train`` only.
 """
 
@@ -40,12 +40,13 @@ from pe_rlhf.evaluation import evaluate, make_policy
 from pe_rlhf.evaluation.statistics import bootstrap_interval
 from pe_rlhf.mentors import ADVERSARY_NAMES
 from pe_rlhf.physics import IDMMobilPolicy, PhysicsConfig
+from pe_rlhf.transforms import SHIELD_PHYSICS
 from pe_rlhf.wrappers import SafetyShieldWrapper
 
 POLICIES = ("random", "adversarial", "idm-mobil-blind", *ADVERSARY_NAMES)
-# The shield's fallback: IDM-MOBIL as the paper's physics (IDM stops for obstacles, MOBIL does not see them), or
-# with MOBIL seeing them too (it changes lanes around obstacles, not into them).
-FALLBACKS = {"idm-mobil": PhysicsConfig(), "idm-mobil-oracle": PhysicsConfig(see_obstacles=True)}
+# The shield's fallback: its own (IDM-MOBIL with MOBIL seeing obstacles), or the paper's physics (IDM stops for
+# obstacles, MOBIL does not see them), which the shield had before (the calibration notebook compares the two).
+FALLBACKS = {"idm-mobil-oracle": SHIELD_PHYSICS, "idm-mobil": PhysicsConfig()}
 
 
 def rates(summary: dict) -> dict:
@@ -74,7 +75,7 @@ def agent_policy(run_dir: str):
 
 
 def measure(policies: dict, seeds: list[int], config: DrivingConfig, threshold: float, save=None,
-            floor: bool = True, done: dict | None = None, fallback: str = "idm-mobil") -> dict:
+            floor: bool = True, done: dict | None = None, fallback: str = "idm-mobil-oracle") -> dict:
     """Each policy (name -> factory) alone and shielded; IDM-MOBIL alone once (``floor=False``: not, measured
     apart); decisions per second. ``save(results)`` is called after each policy (a long run keeps what it
     measured); the policies of ``done`` (a saved run's, on the same scenes) are kept, not measured again."""
@@ -189,8 +190,8 @@ def main(argv=None) -> dict:
     parser.add_argument("--from-sweep", action="append", default=[], type=Path, metavar="SWEEP_DIR",
                         help="the trained cells of a sweep run with shield, read from their evaluations (repeatable)")
     parser.add_argument("--threshold", type=float, default=0.5, help="the shield's threshold [s]")
-    parser.add_argument("--fallback", choices=list(FALLBACKS), default="idm-mobil",
-                        help="the shield's physics (default: idm-mobil, the shield's own default)")
+    parser.add_argument("--fallback", choices=list(FALLBACKS), default="idm-mobil-oracle",
+                        help="the shield's physics: its own (default) or the paper's IDM-MOBIL")
     parser.add_argument("--no-floor", action="store_true", help="leave out IDM-MOBIL alone (measured once, apart)")
     parser.add_argument("--json", type=Path, default=None)
     parser.add_argument("--resume", action="store_true", help="keep the policies --json already holds (same "

@@ -15,8 +15,8 @@ from torchrl.envs.utils import check_env_specs
 from pe_rlhf.envs import DrivingConfig, make_env, make_gym_env
 from pe_rlhf.envs.torchrl_env import unwrap
 from pe_rlhf.mentors import ADVERSARY_NAMES, make_mentor
-from pe_rlhf.physics import SafetyForecastConfig
-from pe_rlhf.transforms import SafetyShield
+from pe_rlhf.physics import IDMMobilPolicy, PhysicsConfig, SafetyForecastConfig
+from pe_rlhf.transforms import SHIELD_PHYSICS, SafetyShield
 from pe_rlhf.transforms.shield import shield_selector
 from pe_rlhf.transforms.keys import PHYSICS_TIME_TO_FAILURE, POLICY_TIME_TO_FAILURE, SHIELD_OVERRIDE
 from pe_rlhf.wrappers import SafetyShieldWrapper
@@ -30,11 +30,11 @@ def keep_lane(sim) -> np.ndarray:
     return THROTTLE.copy()
 
 
-def shielded_run(env, policy, steps: int, on_step=None, selector=None):
-    """``policy(sim)`` through a ``SafetyShieldWrapper`` (its rule: ``selector``, the shipped one by default) over
-    the already placed scene ``env`` (a DrivingEnv); returns the override flags, the infos and whether the episode
-    ended."""
-    shield = SafetyShieldWrapper(env, selector=selector)
+def shielded_run(env, policy, steps: int, on_step=None, selector=None, physics=None):
+    """``policy(sim)`` through a ``SafetyShieldWrapper`` (its rule: ``selector``, its fallback: ``physics``, the
+    shipped ones by default) over the already placed scene ``env`` (a DrivingEnv); returns the override flags, the
+    infos and whether the episode ended."""
+    shield = SafetyShieldWrapper(env, selector=selector, physics=physics)
     shield.core.reset(env)
     flags, infos = [], []
     for i in range(steps):
@@ -57,21 +57,22 @@ def test_a_policy_driving_into_a_standing_obstacle_is_overridden_before_the_cras
     first = int(np.argmax(flags))
     assert flags.any() and first > 0  # not at once: the obstacle is 70 m ahead at first
     assert infos[first][POLICY_TIME_TO_FAILURE] < infos[first][PHYSICS_TIME_TO_FAILURE] - 0.5
-    gap = env.route.project(obstacle.position, env.route_segment)[1] - env.progress
-    assert gap > env.vehicle.LENGTH  # it stopped (or passed no closer than a car length) behind the obstacle
+    assert env.progress > progress_of(env, obstacle)  # the fallback changed lanes around it and drove on
 
 
 def test_full_throttle_at_top_speed_towards_an_obstacle_is_stopped_in_time_and_needs_the_6_s_forecast():
     """30 m/s, full throttle, a standing obstacle 200 m ahead: the action held 1 s and a full stop from 30 m/s take
-    5 s (105 m). The shipped 6 s forecast overrides in time and the car stops behind it; a 3 s forecast reads every
-    action safe until braking can no longer stop the car, and it hits the obstacle (validation scene 508)."""
+    5 s (105 m). With a fallback that can only stop (the paper's IDM-MOBIL: MOBIL does not pass obstacles), the
+    shipped 6 s forecast overrides in time and the car stops behind it; a 3 s forecast reads every action safe until
+    braking can no longer stop the car, and it hits the obstacle (validation scene 508)."""
     outcomes = {}
     for horizon in (3.0, SafetyForecastConfig().horizon):
         env = long_road_env(600.0)
         place_ego(env, 60.0, lane=1, speed=30.0)
         obstacle = add_obstacle(env, 260.0, lane=1)
         selector = shield_selector(forecast=SafetyForecastConfig(horizon=horizon))
-        flags, infos, _ = shielded_run(env, lambda sim: np.array([0.0, 1.0], np.float32), 150, selector=selector)
+        flags, infos, _ = shielded_run(env, lambda sim: np.array([0.0, 1.0], np.float32), 150, selector=selector,
+                                       physics=IDMMobilPolicy(PhysicsConfig()))
         outcomes[horizon] = (any(i["crash_object"] for i in infos), progress_of(env, obstacle) - env.progress)
     assert SafetyForecastConfig().horizon == 6.0
     assert outcomes[3.0][0]  # the short forecast lets it through
@@ -100,6 +101,27 @@ def test_the_override_ends_when_the_danger_has_passed():
     assert 0 < handed_back < 40 and env.progress > progress_of(env, car)
     assert flags[handed_back:].mean() <= 0.1  # the policy drives from then on (a blip near the road edge at 30 m/s)
     assert not any(i["crash_vehicle"] or i["out_of_road"] for i in infos)
+
+
+def test_the_fallback_changes_lanes_around_obstacles_not_into_them():
+    """Full throttle at 11 m/s behind a car crawling at 2 m/s 30 m ahead, the left lane blocked by broken-down cars
+    from 15 m ahead: the shield overrides, and its fallback passes in the free right lane. The paper's IDM-MOBIL as
+    the fallback (MOBIL blind to obstacles) changes lanes into the blocked one and crashes (train scene 1's cone
+    taper, seek-collision: docs/experiments/shield-calibration.md)."""
+    outcomes = {}
+    for name, physics in (("shield", None), ("paper", IDMMobilPolicy(PhysicsConfig()))):
+        env = long_road_env(400.0)
+        place_ego(env, 60.0, lane=1, speed=11.0)
+        car = add_car(env, 90.0, lane=1, speed=2.0, target_speed=2.0)
+        for k in range(4):
+            add_obstacle(env, 75.0 + 6 * k, lane=0)
+        flags, infos, _ = shielded_run(env, lambda sim: np.array([0.0, 1.0], np.float32), 150, physics=physics)
+        crashed = any(i["crash_object"] or i["crash_vehicle"] or i["out_of_road"] for i in infos)
+        outcomes[name] = (crashed, flags.any(), env.progress - progress_of(env, car))
+    assert SHIELD_PHYSICS.see_obstacles
+    crashed, overridden, ahead_of_car = outcomes["shield"]
+    assert overridden and not crashed and ahead_of_car > 50  # passed the crawling car
+    assert outcomes["paper"][0]  # the blind lane change hits the broken-down cars
 
 
 def test_the_transform_composes_on_a_plain_env_and_writes_its_keys():

@@ -6,9 +6,8 @@ from pe_rlhf.transforms.hybrid_selection import HybridSelectionTransform
 from pe_rlhf.transforms.intervention import InterventionTransform, takeover_cost
 from pe_rlhf.transforms.pacing import RealtimePacing
 from pe_rlhf.transforms.selector import HybridActionSelector
-from pe_rlhf.transforms.shield import LATCH_RELEASE_SPEED, SafetyShield, ShieldCore
+from pe_rlhf.transforms.shield import LATCH_RELEASE_SPEED, SHIELD_PHYSICS, SafetyShield, ShieldCore
 
-__all__ = ["LATCH_RELEASE_SPEED", "HybridActionSelector", "HybridSelectionTransform", "InterventionTransform",
-           "RealtimePacing", "SafetyShield", "ShieldCore",
-           "TrafficDisturbanceCost",
+__all__ = ["LATCH_RELEASE_SPEED", "SHIELD_PHYSICS", "HybridActionSelector", "HybridSelectionTransform",
+           "InterventionTransform", "RealtimePacing", "SafetyShield", "ShieldCore", "TrafficDisturbanceCost",
            "takeover_cost"]

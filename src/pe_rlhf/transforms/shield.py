@@ -1,16 +1,16 @@
 """``SafetyShield``: a runtime shield (Simplex) for any driving policy, as a TorchRL transform.
 
-Every step, the policy's ``action`` and the physics policy's (IDM-MOBIL, the verified fallback) are scored
-by the physics forecast (:class:`~pe_rlhf.physics.SafetyForecastValue`: seconds until the action, held 1 s
-then followed by a recovery, leads to a crash or off the road). The shield executes physics' action when the
-policy's fails more than ``threshold`` seconds sooner than physics' and hands the wheel back when it no longer
-does. The rule is :class:`~pe_rlhf.transforms.HybridActionSelector`'s, with the policy as the mentor
+Every step, the policy's ``action`` and the physics policy's (the fallback: IDM-MOBIL with MOBIL seeing obstacles,
+``SHIELD_PHYSICS``) are scored by the physics forecast (:class:`~pe_rlhf.physics.SafetyForecastValue`: seconds until
+the action, held 1 s then followed by a recovery, leads to a crash or off the road). The shield executes physics'
+action when the policy's fails more than ``threshold`` seconds sooner than physics' and hands the wheel back when it
+no longer does. The rule is :class:`~pe_rlhf.transforms.HybridActionSelector`'s, with the policy as the mentor
 (``epsilon_select = -threshold``), ``reference="physics_or_recovery"`` (physics' action, or braking at once where
-that is forecast safer: the fallback is what runs), ``strict_in_danger`` (no slack where the fallback itself
-is forecast to fail) and ``persistence="latch"``: once the shield has acted it keeps the wheel
-until the policy's action, *repeated* over the whole forecast (as a policy that repeats it will execute it),
-is no longer forecast to fail sooner than physics' by more than ``threshold``. Without the latch a policy that
-repeats a dangerous action passes the one-step check at every step while the sequence ends in a crash.
+that is forecast safer: the fallback is what runs), ``strict_in_danger`` (no slack where the fallback itself is
+forecast to fail) and ``persistence="latch"``: once the shield has acted it keeps the wheel until the policy's
+action, *repeated* over the whole forecast (as a policy that repeats it will execute it), is no longer forecast to
+fail sooner than physics' by more than ``threshold``. Without the latch a policy that repeats a dangerous action
+passes the one-step check at every step while the sequence ends in a crash.
 
 Composes on a plain ``TransformedEnv`` over the driving env, whatever writes ``action``::
 
@@ -52,6 +52,11 @@ DEFAULT_THRESHOLD = 0.5  # [s] the selector's -epsilon_select (docs/results/clai
 # [m/s] with persistence="latch": a standing car's step is judged alone (docs/experiments/shield-calibration.md: the
 # professional steering around an obstacle at walking pace was held behind it, standing, by the latch)
 LATCH_RELEASE_SPEED = 0.5
+# The fallback: IDM-MOBIL whose MOBIL sees obstacles too, so that a lane change never steers into one. The paper's
+# physics (``PhysicsConfig()``: IDM stops for obstacles, MOBIL is blind to them) drove a shielded seek-collision into
+# a cone taper on train scene 1; this one held every driver of train scenes 0-9 with no violation, at equal or
+# higher success (docs/experiments/shield-calibration.md).
+SHIELD_PHYSICS = PhysicsConfig(see_obstacles=True)
 
 
 def shield_selector(threshold: float = DEFAULT_THRESHOLD, persistence: str = "latch",
@@ -95,7 +100,7 @@ class ShieldCore:
         if selector is not None and not getattr(selector.q_ensemble, "needs_env", False):
             raise ValueError("SafetyShield: selector must read a forecast from the simulator (SafetyForecastValue)")
         self.selector = selector or shield_selector(threshold, persistence)
-        self.physics = physics or IDMMobilPolicy(PhysicsConfig())
+        self.physics = physics or IDMMobilPolicy(SHIELD_PHYSICS)
         self.threshold = -self.selector.epsilon_select
         self._latch: torch.Tensor | None = None  # (1,) int64: 1 while the shield holds the wheel
 
@@ -121,7 +126,8 @@ class SafetyShield(Transform):
 
     Args:
         threshold: seconds by which the policy's action may fail sooner than physics' before the shield acts.
-        physics: the fallback (default ``IDMMobilPolicy(PhysicsConfig())``), called ``physics(sim)``.
+        physics: the fallback (default ``IDMMobilPolicy(SHIELD_PHYSICS)``: IDM-MOBIL that changes lanes around
+            obstacles), called ``physics(sim)``.
         selector: the rule (default :func:`shield_selector` ``(threshold, persistence)``).
         persistence: ``latch`` (default), ``always`` or ``off`` (each step judged alone: the one-step rule).
         in_keys: ``[action]``; out_keys: ``[shield_override, shielded_action, policy_time_to_failure,
