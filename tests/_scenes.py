@@ -134,3 +134,19 @@ def drive(env, policy, steps: int, on_step=None):
         if terminated or truncated:
             break
     return np.array(actions), info, terminated
+
+
+def crossing_at_a_standing_ego(lateral: float = 15.0, speed: float = 6.0):
+    """The ego standing in the middle lane; a plain highway-env vehicle (it keeps its velocity: a car on a
+    roundabout's ring does not brake for a car standing across it) ``lateral`` metres to its left, 0.5 m ahead of
+    its centre, driving across the ego's lane at ``speed``: it reaches the ego's side in about 2 s."""
+    from highway_env.vehicle.kinematics import Vehicle
+
+    env = straight_env(scene_seed=0)
+    env.vehicle.speed = 0.0
+    ego = env.vehicle
+    forward = np.array([np.cos(ego.heading), np.sin(ego.heading)])
+    left = np.array([np.sin(ego.heading), -np.cos(ego.heading)])  # towards lane slot 0
+    env.road.vehicles.append(Vehicle(env.road, ego.position + 0.5 * forward + lateral * left,
+                                     heading=ego.heading + np.pi / 2, speed=speed))
+    return env

@@ -14,7 +14,7 @@ from pe_rlhf.algorithms.proxy_q.builders import build_value_source, build_select
 from pe_rlhf.algorithms.proxy_q.config import load_config
 from pe_rlhf.algorithms.proxy_q.value_expert import parse_value_source
 from pe_rlhf.transforms import HybridActionSelector
-from _scenes import add_car, add_obstacle, place_ego, straight_env
+from _scenes import add_car, add_obstacle, crossing_at_a_standing_ego, place_ego, straight_env
 
 THROTTLE = np.array([0.0, 1.0], np.float32)
 BRAKE = np.array([0.0, -1.0], np.float32)
@@ -356,21 +356,6 @@ def test_the_recovery_keeps_the_wheels_straight_where_steering_back_runs_into_a_
     assert not rollout(env, best)
     for action in (BRAKE, COAST):  # the candidates' forecasts: never worse than with the route recovery alone
         assert time_to_failure(env, action, best.config) >= time_to_failure(env, action, route.config)
-
-
-def crossing_at_a_standing_ego(lateral: float = 15.0, speed: float = 6.0):
-    """The ego standing in the middle lane; a plain highway-env vehicle (it keeps its velocity: a car on a
-    roundabout's ring does not brake for a car standing across it) ``lateral`` metres to its left, 0.5 m ahead of
-    its centre, driving across the ego's lane at ``speed``: it reaches the ego's side in about 2 s."""
-    from highway_env.vehicle.kinematics import Vehicle
-
-    env = at_speed(0.0)
-    ego = env.vehicle
-    forward = np.array([np.cos(ego.heading), np.sin(ego.heading)])
-    left = np.array([np.sin(ego.heading), -np.cos(ego.heading)])  # towards lane slot 0
-    env.road.vehicles.append(Vehicle(env.road, ego.position + 0.5 * forward + lateral * left,
-                                     heading=ego.heading + np.pi / 2, speed=speed))
-    return env
 
 
 def test_a_car_standing_in_a_crossing_cars_path_recovers_by_driving_on():

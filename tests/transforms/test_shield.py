@@ -20,7 +20,8 @@ from pe_rlhf.transforms import SHIELD_PHYSICS, SafetyShield
 from pe_rlhf.transforms.shield import shield_selector
 from pe_rlhf.transforms.keys import PHYSICS_TIME_TO_FAILURE, POLICY_TIME_TO_FAILURE, SHIELD_OVERRIDE
 from pe_rlhf.wrappers import SafetyShieldWrapper
-from _scenes import EMPTY_STRAIGHT, add_car, add_obstacle, long_road_env, place_ego, progress_of
+from _scenes import (EMPTY_STRAIGHT, add_car, add_obstacle, crossing_at_a_standing_ego, long_road_env, place_ego,
+                     progress_of)
 
 THROTTLE = np.array([0.0, 0.6], np.float32)
 
@@ -193,8 +194,6 @@ def test_a_policy_standing_in_a_crossing_cars_path_is_driven_out_of_it():
     """The ego stands across the path of a car that does not brake for it (``crossing_at_a_standing_ego``): a
     policy that keeps braking is hit within about 2 s alone; shielded, the shield drives the car out of the way
     (the recovery that drives on) and nothing is hit."""
-    from test_safety_forecast import crossing_at_a_standing_ego
-
     alone = crossing_at_a_standing_ego()
     for _ in range(40):
         _, _, terminated, truncated, info = alone.step(np.array([0.0, -1.0], np.float32))
