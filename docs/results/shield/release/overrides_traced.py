@@ -1,4 +1,8 @@
-"""Where does the shield override a trained agent? Per step: one-step veto or latch hold, forecasts, speed, action."""
+"""Where does the shield override a trained agent? Per step: one-step veto or latch hold, forecasts, speed, action.
+
+A notebook script (it reads the shield's private latch state), run from the repository root:
+    PYTHONPATH=src python docs/results/shield/release/overrides_traced.py RUN_DIR 0,1,...,9 OUT.json
+"""
 import json, sys
 import numpy as np, torch
 from pe_rlhf.envs import DrivingConfig, make_gym_env
@@ -23,9 +27,6 @@ for seed in scenes:
         obs, r, term, trunc, info = env.step(action)
         tp, tf = info["policy_time_to_failure"], info["physics_time_to_failure"]
         eps = float(env.core.selector._epsilon(torch.tensor([tf])).item())
-        rep = float("nan")
-        if info["shield_override"] and tp - tf >= eps:
-            pass
         executed = np.asarray(info["shielded_action"], dtype=np.float32)
         rows.append(dict(scene=seed, step=step, speed=speed, steer=float(action[0]), acc=float(action[1]),
                          override=bool(info["shield_override"]), latched_before=latched,
