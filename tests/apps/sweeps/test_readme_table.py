@@ -31,20 +31,23 @@ def test_readme_shows_exactly_the_table_of_summary_json():
 
 
 def test_labels_order_and_cells():
-    summary = {"amateur": {"idm_mobil": entry((0.42, 0.42, 0.42), seeds=1, train=None, usage=None),
-                           "zeta": entry((0.1, 0.0, 0.2)), "haco": entry((0.5, 0.4, 0.6))},
+    idm = entry((0.42, 0.42, 0.42), seeds=1, train=None, usage=None)
+    summary = {"amateur": {"idm_mobil": idm, "zeta": entry((0.1, 0.0, 0.2)), "haco": entry((0.5, 0.4, 0.6))},
                "professional": {"pvp": entry((0.8, 0.7, 0.9), seeds=5), "pe_rlhf_paper_loss": entry((0.6, 0.5, 0.7)),
+                                "idm_mobil": idm,
                                 "pe_rlhf": {**entry((0.85, 0.75, 0.95), seeds=5),
                                             "per_seed": {"seed": [0], "success": [0.8], "test_safety": [0.9]}}}}
     got = rows(readme_table(summary))
-    # the professional first, then the others as given; the paper's methods in reading order, unknown names last
+    # the professional first, then the others as given; the paper's methods in reading order, unknown names last;
+    # the evaluated-only IDM-MOBIL once, under the first mentor (it has no mentor)
     assert [(r[0], r[1]) for r in got] == [
         ("professional", "PE-RLHF"), ("professional", "PE-RLHF (paper's loss)"), ("professional", "PVP"),
-        ("amateur", "HACO"), ("amateur", "IDM-MOBIL"), ("amateur", "zeta")]
+        ("professional", "IDM-MOBIL"), ("amateur", "HACO"), ("amateur", "zeta")]
     assert got[0] == ["professional", "PE-RLHF", "5", "0.85 [0.75, 0.95]", "0.90 [0.80, 1.00]", "1.0 [0.0, 2.0]",
                       "0.25 [0.20, 0.30]"]
     # an evaluated-only method: one value where every seed agrees, a dash where it has no such metric
-    assert got[4] == ["amateur", "IDM-MOBIL", "—", "0.42", "0.90 [0.80, 1.00]", "—", "—"]
+    assert got[3] == ["professional", "IDM-MOBIL", "—", "0.42", "0.90 [0.80, 1.00]", "—", "—"]
+    assert "needs no mentor" in readme_table(summary).splitlines()[-1]
 
 
 def test_the_line_under_the_table_says_steps_and_scenes():
@@ -91,14 +94,22 @@ def test_the_script_rewrites_a_readme_from_summary_json(tmp_path, capsys):
     assert "BAD.md" in capsys.readouterr().err
 
 
-def test_a_shielded_method_gets_a_row_of_its_own_and_the_line_says_what_it_is():
+def test_a_shielded_method_gets_a_column_and_the_line_says_what_it_is():
     agent = {**entry((0.6, 0.5, 0.7), seeds=5), "shielded_success": [0.62, 0.55, 0.7],
              "shielded_test_safety": [1.0, 1.0, 1.0], "override_share": [0.05, 0.04, 0.06]}
+    other = {**entry((0.3, 0.2, 0.4)), "shielded_success": [0.5, 0.4, 0.6], "shielded_test_safety": [0.98, 0.96, 1.0],
+             "override_share": [0.1, 0.05, 0.2]}
     summary = {"professional": {"pe_rlhf": agent, "idm_mobil": {**entry((0.42, 0.42, 0.42), seeds=1, train=None,
-                                                                        usage=None), "shielded_success": None}}}
+                                                                        usage=None), "shielded_success": None}},
+               "adversarial": {"haco": other}}
     text = readme_table(summary)
+    assert text.splitlines()[0].split("|")[6].strip() == "shielded success"
     got = rows(text)
-    assert [r[1] for r in got] == ["PE-RLHF", "PE-RLHF, shielded", "IDM-MOBIL"]
-    assert got[1] == ["professional", "PE-RLHF, shielded", "5", "0.62 [0.55, 0.70]", "1.00", "—", "—"]
-    assert "runtime shield" in text.splitlines()[-1]
-    assert "shield" not in readme_table({"professional": {"pe_rlhf": entry((0.6, 0.5, 0.7))}}).splitlines()[-1]
+    assert [r[1] for r in got] == ["PE-RLHF", "IDM-MOBIL", "HACO"]
+    assert got[0] == ["professional", "PE-RLHF", "5", "0.60 [0.50, 0.70]", "0.90 [0.80, 1.00]", "0.62 [0.55, 0.70]",
+                      "1.0 [0.0, 2.0]", "0.25 [0.20, 0.30]"]
+    assert got[1][5] == "—"  # IDM-MOBIL is not an agent under the shield
+    last = text.splitlines()[-1]
+    assert "runtime shield" in last and "0.98 or above in every row" in last  # the lowest shielded test safety
+    plain = readme_table({"professional": {"pe_rlhf": entry((0.6, 0.5, 0.7))}})
+    assert "shield" not in plain and len(rows(plain)[0]) == 7

@@ -14,7 +14,8 @@ Where a claim's cells were also evaluated under the runtime shield (a sweep with
 ``shielded_success_rate``, ``shielded_safety_violation``, ``override_share``), every method of that claim gains
 ``"shielded_success"``, ``"shielded_test_safety"`` and ``"override_share"`` as ``[mean, lo, hi]`` (``null`` for a
 method without them, e.g. IDM-MOBIL) and its ``per_seed`` the lists ``shielded_success`` and
-``shielded_test_safety``; the tables show a ``<method> shielded`` row under the method's.
+``shielded_test_safety``; ``summary.md`` shows a ``<method> shielded`` row under the method's, README's table a
+shielded-success column.
 
 Where the cells carry a ``train_violations_after`` column (:func:`add_violations_after`: the training safety
 violations logged after a given env step, e.g. after a collapsing mentor's switch or after the warm-up), every
@@ -198,28 +199,40 @@ def readme_table(summary: dict, steps: int = 30_000, warmup: int = 10_000,
     """README's results table from a claims ``summary`` (module docstring): one row per mentor and method, methods by
     their readable name (:data:`METHOD_LABELS`), each metric ``mean [lo, hi]``, then a line saying what a cell is
     (``steps`` env steps, ``warmup`` of them the mentor's warm-up, the final evaluation on ``scenes``). A method
-    without training metrics (IDM-MOBIL) is evaluated only: its seeds show as ``—``."""
-    lines = ["| mentor | method | seeds | test success | test safety | training violations | takeover data usage |",
-             "|---|---|---|---|---|---|---|"]
+    without training metrics (IDM-MOBIL) is evaluated only, with no mentor: its seeds show as ``—`` and its row
+    stands once, under the first mentor that has it. Where the agents were also evaluated under the runtime shield,
+    their shielded success is a column and the line gives the lowest shielded test safety of any row."""
+    shielded = [m for ms in summary.values() for m in ms.values() if is_shielded(m)]
+    lines = ["| mentor | method | seeds | test success | test safety |" + (" shielded success |" if shielded else "")
+             + " training violations | takeover data usage |",
+             "|---|---|---|---|---|" + ("---|" if shielded else "") + "---|---|"]
+    evaluated_only_shown: set[str] = set()
     for mentor in _in_order(list(summary), MENTOR_ORDER):
         methods = summary[mentor]
         for method in _in_order(list(methods), tuple(METHOD_LABELS)):
             m = methods[method]
             trained = m.get("train_violations") is not None
+            if not trained and method in evaluated_only_shown:
+                continue
+            evaluated_only_shown.update(() if trained else (method,))
+            shield_cell = (f" {_interval(m['shielded_success'], '.2f') if is_shielded(m) else '—'} |"
+                           if shielded else "")
             lines.append(f"| {mentor} | {METHOD_LABELS.get(method, method)} | {m['seeds'] if trained else '—'} | "
-                         f"{_interval(m.get('success'), '.2f')} | {_interval(m.get('test_safety'), '.2f')} | "
-                         f"{_interval(m.get('train_violations'), '.1f')} | "
+                         f"{_interval(m.get('success'), '.2f')} | {_interval(m.get('test_safety'), '.2f')} |"
+                         f"{shield_cell} {_interval(m.get('train_violations'), '.1f')} | "
                          f"{_interval(m.get('takeover_usage'), '.2f')} |")
-            if is_shielded(m):  # the same agents under the runtime shield: no training of their own
-                lines.append(f"| {mentor} | {METHOD_LABELS.get(method, method)}, shielded | {m['seeds']} | "
-                             f"{_interval(m['shielded_success'], '.2f')} | "
-                             f"{_interval(m['shielded_test_safety'], '.2f')} | — | — |")
-    lines += ["", f"Mean [95% bootstrap interval] over seeds; each learned cell {steps // 1000}K env steps "
-                  f"({warmup // 1000}K of them the mentor's warm-up), final evaluation on {scenes}; "
-                  "test safety is 1 - the episodes' safety violation rate; IDM-MOBIL is evaluated, not trained"
-                  + ("; a shielded row is the same agents deployed under the runtime shield (docs/guide/shield.md)."
-                     if any(is_shielded(m) for ms in summary.values() for m in ms.values()) else ".")]
-    return "\n".join(lines)
+    note = (f"Mean [95% bootstrap interval] over seeds; each learned cell {steps // 1000}K env steps "
+            f"({warmup // 1000}K of them the mentor's warm-up), final evaluation on {scenes}; "
+            "test safety is 1 - the episodes' safety violation rate; IDM-MOBIL is evaluated, not trained, and needs "
+            "no mentor")
+    if shielded:
+        note += "; shielded success is the same agents deployed under the runtime shield (docs/guide/shield.md)"
+        safeties = [m["shielded_test_safety"][0] for m in shielded if m.get("shielded_test_safety")
+                    and math.isfinite(m["shielded_test_safety"][0])]
+        if safeties:
+            note += f", whose test safety is {min(safeties):.2f} or above in every row"
+
+    return "\n".join(lines + ["", note + "."])
 
 
 def with_readme_table(text: str, table: str) -> str:
