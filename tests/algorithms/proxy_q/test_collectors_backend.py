@@ -94,8 +94,11 @@ def test_multisync_batches_are_per_worker_runs_with_finite_metrics(multisync_run
 
 def test_fitted_ensemble_weights_reach_the_workers(multisync_run):
     batches = multisync_run["batches"]
-    chosen, takeovers = _mentor_chosen(batches[1])
-    assert takeovers > 0 and chosen == takeovers  # finite ensemble, epsilon -1e9: the mentor is trusted
+    # while the ensemble is finite (batches 0 and 1, after each worker's one warm-up step, which the mentor drives
+    # unjudged), epsilon -1e9: the mentor is trusted at every takeover. Counted over both together: how many
+    # takeovers a batch holds varies from run to run (0 to 26 in batch 1 on one machine)
+    early = [_mentor_chosen(batches[0][:, 1:]), _mentor_chosen(batches[1])]
+    assert sum(t for _, t in early) > 0 and sum(c for c, _ in early) == sum(t for _, t in early)
     # the main process's ensemble is NaN now: physics is chosen at every later takeover. Over the later batches
     # together: which of them hold a takeover depends on when the workers took the synced actor (a loaded machine
     # gave one without any)
