@@ -203,18 +203,19 @@ def readme_table(summary: dict, steps: int = 30_000, warmup: int = 10_000,
     stands once, under the first mentor that has it. Where the agents were also evaluated under the runtime shield,
     their shielded success is a column and the line gives the lowest shielded test safety of any row."""
     shielded = [m for ms in summary.values() for m in ms.values() if is_shielded(m)]
-    lines = ["| mentor | method | seeds | test success | test safety |" + (" shielded success |" if shielded else "")
-             + " training violations | takeover data usage |",
-             "|---|---|---|---|---|" + ("---|" if shielded else "") + "---|---|"]
+    columns = (["mentor", "method", "seeds", "test success", "test safety"] + ["shielded success"] * bool(shielded)
+               + ["training violations", "takeover data usage"])
+    lines = ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
     evaluated_only_shown: set[str] = set()
     for mentor in _in_order(list(summary), MENTOR_ORDER):
         methods = summary[mentor]
         for method in _in_order(list(methods), tuple(METHOD_LABELS)):
             m = methods[method]
             trained = m.get("train_violations") is not None
-            if not trained and method in evaluated_only_shown:
-                continue
-            evaluated_only_shown.update(() if trained else (method,))
+            if not trained:  # evaluated only, with no mentor: the same row under every mentor, shown once
+                if method in evaluated_only_shown:
+                    continue
+                evaluated_only_shown.add(method)
             shield_cell = (f" {_interval(m['shielded_success'], '.2f') if is_shielded(m) else '—'} |"
                            if shielded else "")
             lines.append(f"| {mentor} | {METHOD_LABELS.get(method, method)} | {m['seeds'] if trained else '—'} | "
@@ -231,7 +232,6 @@ def readme_table(summary: dict, steps: int = 30_000, warmup: int = 10_000,
                     and math.isfinite(m["shielded_test_safety"][0])]
         if safeties:
             note += f", whose test safety is {min(safeties):.2f} or above in every row"
-
     return "\n".join(lines + ["", note + "."])
 
 
